@@ -1,0 +1,20 @@
+"""Shared pytest fixtures."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED = REPO.parent / "shared"
+DDC_EXAMPLE = SHARED / "data" / "ddc_example"
+BVH_EXAMPLE = SHARED / "data" / "motion" / "cmu_131_01_start_walk_stop.bvh"
+
+
+@pytest.fixture
+def ddc_example() -> Path:
+    """The real DDC example character directory; skips when ../shared is absent."""
+    if not (DDC_EXAMPLE / "ddc.character").exists():
+        pytest.skip("../shared/data/ddc_example is not available")
+    return DDC_EXAMPLE
