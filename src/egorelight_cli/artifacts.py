@@ -1,0 +1,465 @@
+"""Versioned on-disk artifacts: manifests, digests, cache keys and atomic output.
+
+An artifact is either
+
+* a **directory** holding ``manifest.json`` and payload files, or
+* a **single file** (``--out motion.npz``) with a sidecar manifest ``motion.npz.json`` next to it.
+
+The manifest (DESIGN.md Sec. 3) records kind, version, stage, resolved config, input digests,
+output digests, metrics, timing and units; it is validated against ``schemas/<kind>.schema.json``.
+An artifact counts as *finished* only when its manifest exists: writes go to a temporary
+sibling (``<out>.tmp-<random>``) and are renamed into place at the end, so a killed run never
+leaves a finished-looking half artifact.
+
+A stage's **cache key** is the hash of (stage, stage version, resolved config, input digests);
+re-running a stage whose output already carries the same key is skipped unless forced.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import hashlib
+import json
+import os
+import shutil
+import socket
+import uuid
+from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
+from typing import Any
+
+import jsonschema
+import numpy as np
+from referencing import Registry, Resource
+
+from egorelight_cli import __version__
+from egorelight_cli.errors import EgorelightError
+from egorelight_cli.io.npz import write_npz
+from egorelight_cli.resources import schemas_dir
+
+KIND_PREFIX = "egorelight/"
+MANIFEST_NAME = "manifest.json"
+SIDECAR_SUFFIX = ".json"
+BASE_SCHEMA = "manifest.schema.json"
+
+
+# ----------------------------------------------------------------------------------- schemas
+@lru_cache(maxsize=None)
+def _schema_documents() -> dict[str, dict]:
+    docs = {}
+    for path in sorted(schemas_dir().glob("*.schema.json")):
+        docs[path.name] = json.loads(path.read_text())
+    return docs
+
+
+@lru_cache(maxsize=None)
+def _registry() -> Registry:
+    return Registry().with_resources(
+        (name, Resource.from_contents(doc)) for name, doc in _schema_documents().items()
+    )
+
+
+def known_kinds() -> dict[str, int]:
+    """Artifact kind (short name, e.g. ``motion``) -> the version this tool reads and writes."""
+    kinds = {}
+    for name, doc in _schema_documents().items():
+        if name == BASE_SCHEMA:
+            continue
+        props = doc.get("properties", {})
+        kinds[props["kind"]["const"].removeprefix(KIND_PREFIX)] = int(props["version"]["const"])
+    return kinds
+
+
+def kind_version(kind: str) -> int:
+    kinds = known_kinds()
+    if kind not in kinds:
+        raise EgorelightError(f"unknown artifact kind {kind!r}; known: {', '.join(sorted(kinds))}")
+    return kinds[kind]
+
+
+def validate_manifest(manifest: dict, path: str | Path | None = None) -> None:
+    """Validate against the base manifest schema and the kind's own schema."""
+    docs = _schema_documents()
+    kind = str(manifest.get("kind", "")).removeprefix(KIND_PREFIX)
+    names = [BASE_SCHEMA] + ([f"{kind}.schema.json"] if f"{kind}.schema.json" in docs else [])
+    for name in names:
+        validator = jsonschema.Draft202012Validator(docs[name], registry=_registry())
+        error = jsonschema.exceptions.best_match(validator.iter_errors(manifest))
+        if error is not None:
+            where = "/".join(str(p) for p in error.absolute_path) or "(top level)"
+            raise EgorelightError(f"manifest does not match {name} at {where}: {error.message}", path)
+
+
+# ----------------------------------------------------------------------------------- hashing
+def sha256_file(path: str | Path, chunk: int = 1 << 20) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        while block := handle.read(chunk):
+            digest.update(block)
+    return "sha256:" + digest.hexdigest()
+
+
+def sha256_bytes(data: bytes) -> str:
+    return "sha256:" + hashlib.sha256(data).hexdigest()
+
+
+def cache_key(stage: str, stage_version: int, config: dict, input_digests: list[str]) -> str:
+    """hash(stage, stage version, resolved config, input digests) — order of inputs matters."""
+    blob = json.dumps(
+        {"stage": stage, "version": stage_version, "config": config, "inputs": list(input_digests)},
+        sort_keys=True, separators=(",", ":"),
+    )
+    return sha256_bytes(blob.encode())
+
+
+# ----------------------------------------------------------------------------------- reading
+@dataclass(frozen=True)
+class Artifact:
+    """A finished artifact on disk.
+
+    Attributes:
+        manifest_path: the ``manifest.json`` or sidecar ``<file>.json``.
+        manifest: its parsed content.
+        digest: sha256 of the manifest bytes (it lists every output digest, so it identifies
+            the whole artifact's content).
+        single_file: True for a file + sidecar artifact.
+    """
+
+    manifest_path: Path
+    manifest: dict
+    digest: str
+    single_file: bool
+
+    @property
+    def kind(self) -> str:
+        return self.manifest["kind"].removeprefix(KIND_PREFIX)
+
+    @property
+    def version(self) -> int:
+        return int(self.manifest["version"])
+
+    @property
+    def root(self) -> Path:
+        """Directory that output paths are relative to."""
+        return self.manifest_path.parent
+
+    @property
+    def path(self) -> Path:
+        """What a user names: the directory, or the single payload file."""
+        if self.single_file:
+            return self.manifest_path.with_name(self.manifest_path.name.removesuffix(SIDECAR_SUFFIX))
+        return self.root
+
+    @property
+    def metrics(self) -> dict:
+        return self.manifest.get("metrics", {})
+
+    def output(self, name: str) -> Path:
+        """Path of the named payload; error if the manifest does not list it or it is gone."""
+        for entry in self.manifest["outputs"]:
+            if entry["name"] == name:
+                path = self.root / entry["path"]
+                if not path.exists():
+                    raise EgorelightError(f"artifact lists {name} but the file is missing", path)
+                return path
+        names = ", ".join(e["name"] for e in self.manifest["outputs"][:10])
+        raise EgorelightError(f"artifact has no output {name!r} (has: {names})", self.manifest_path)
+
+    def verify(self) -> None:
+        """Recompute every output digest; error on the first mismatch."""
+        for entry in self.manifest["outputs"]:
+            path = self.root / entry["path"]
+            if not path.is_file():
+                raise EgorelightError("artifact output is missing", path)
+            if sha256_file(path) != entry["digest"]:
+                raise EgorelightError("artifact output does not match its manifest digest (modified or half-written)", path)
+
+    def as_input(self, relative_to: str | Path | None = None) -> dict:
+        """The manifest ``inputs`` entry for this artifact; ``path`` is relative to
+        ``relative_to`` (the consuming manifest's directory) when given."""
+        path = Path(os.path.relpath(self.path.resolve(), Path(relative_to).resolve())) if relative_to else self.path
+        return {"kind": self.manifest["kind"], "path": path.as_posix(), "digest": self.digest}
+
+
+def manifest_path_for(path: str | Path) -> tuple[Path, bool]:
+    """Where the manifest of ``path`` lives: (manifest path, single_file)."""
+    path = Path(path)
+    if path.is_dir():
+        return path / MANIFEST_NAME, False
+    if path.name == MANIFEST_NAME:
+        return path, False
+    if path.name.endswith(SIDECAR_SUFFIX) and path.with_name(path.name.removesuffix(SIDECAR_SUFFIX)).is_file():
+        return path, True
+    return path.with_name(path.name + SIDECAR_SUFFIX), True
+
+
+def open_artifact(path: str | Path, kind: str | None = None, verify: bool | None = None) -> Artifact:
+    """Open a finished artifact and check its kind and version.
+
+    Args:
+        path: the artifact directory, its ``manifest.json``, a single payload file or its sidecar.
+        kind: expected kind (short name, ``motion``); None accepts any known kind.
+        verify: recompute output digests (default: only for single-file artifacts, where a
+            crash between the payload and sidecar renames could otherwise go unnoticed).
+    """
+    path = Path(path)
+    if not path.exists():
+        raise EgorelightError("input not found", path)
+    manifest_path, single_file = manifest_path_for(path)
+    if not manifest_path.is_file():
+        what = "directory" if path.is_dir() else "file"
+        raise EgorelightError(f"not a finished egorelight artifact ({what} has no {manifest_path.name})", path)
+    raw = manifest_path.read_bytes()
+    try:
+        manifest = json.loads(raw)
+    except json.JSONDecodeError as exc:
+        raise EgorelightError(f"manifest is not valid JSON ({exc.msg} at line {exc.lineno})", manifest_path) from None
+    if not isinstance(manifest, dict) or not str(manifest.get("kind", "")).startswith(KIND_PREFIX):
+        raise EgorelightError("manifest has no egorelight kind", manifest_path)
+    found = manifest["kind"].removeprefix(KIND_PREFIX)
+    if kind is not None and found != kind:
+        raise EgorelightError(f"wrong artifact kind: expected {KIND_PREFIX}{kind}, found {KIND_PREFIX}{found}", path)
+    known = known_kinds()
+    if found not in known:
+        raise EgorelightError(f"unknown artifact kind {KIND_PREFIX}{found}", path)
+    if manifest.get("version") != known[found]:
+        raise EgorelightError(
+            f"{KIND_PREFIX}{found} version mismatch: artifact is version {manifest.get('version')}, "
+            f"this tool ({__version__}) reads version {known[found]}", path)
+    validate_manifest(manifest, manifest_path)
+    artifact = Artifact(manifest_path=manifest_path, manifest=manifest, digest=sha256_bytes(raw), single_file=single_file)
+    if verify or (verify is None and single_file):
+        artifact.verify()
+    return artifact
+
+
+# ----------------------------------------------------------------------------------- writing
+def _fsync_tree(root: Path) -> None:
+    for dirpath, _dirs, files in os.walk(root):
+        for name in files:
+            fd = os.open(os.path.join(dirpath, name), os.O_RDONLY)
+            try:
+                os.fsync(fd)
+            finally:
+                os.close(fd)
+    _fsync_dir(root)
+
+
+def _fsync_dir(path: Path) -> None:
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def _array_entry(path: Path) -> dict[str, Any]:
+    """Shape/dtype of the main arrays of an npz, for the manifest."""
+    if path.suffix != ".npz":
+        return {}
+    with np.load(path, allow_pickle=False) as data:
+        arrays = {n: (list(data[n].shape), str(data[n].dtype)) for n in data.files if n != "__meta__"}
+    return {"arrays": {n: {"shape": s, "dtype": d} for n, (s, d) in arrays.items()}}
+
+
+def is_up_to_date(out: str | Path, key: str, kind: str) -> bool:
+    """True when ``out`` is a finished artifact of ``kind`` made with cache key ``key``."""
+    manifest_path, _ = manifest_path_for(out)
+    if not manifest_path.is_file():
+        return False
+    try:
+        artifact = open_artifact(out, kind=kind)
+    except EgorelightError:
+        return False
+    return artifact.manifest.get("cache_key") == key
+
+
+class ArtifactWriter:
+    """Collects an artifact's payloads in a temporary location and commits them atomically.
+
+    Usage::
+
+        with ArtifactWriter(out, kind="motion", stage="ik", config=cfg, inputs=[kp]) as w:
+            w.save_npz("motion.npz", arrays, frame_ids=ids, units={"theta": "rad|m"})
+            w.metrics["mpjpe_cm"] = 1.2
+        # committed here; an exception inside the block discards everything
+
+    ``out`` ending in a payload suffix (``.npz``, ``.exr``, ``.png``, ``.json``, ``.obj``,
+    ``.ply``) makes a single-file artifact: exactly one payload, named like ``out``, with a
+    sidecar manifest ``<out>.json``.
+    """
+
+    SINGLE_FILE_SUFFIXES = (".npz", ".exr", ".png", ".json", ".obj", ".ply")
+
+    def __init__(self, out: str | Path, kind: str, stage: str, config: Any = None,
+                 inputs: list[Artifact] | tuple[Artifact, ...] = (), key: str | None = None):
+        self.out = Path(out)
+        self.kind = kind
+        self.version = kind_version(kind)
+        self.stage = stage
+        self.config = config.to_dict() if hasattr(config, "to_dict") else dict(config or {})
+        self.stage_version = int(getattr(config, "version", 1))
+        self.inputs = list(inputs)
+        self.cache_key = key or cache_key(stage, self.stage_version, self.config, [a.digest for a in self.inputs])
+        self.single_file = self.out.suffix.lower() in self.SINGLE_FILE_SUFFIXES
+        self.metrics: dict[str, Any] = {}
+        self.timing: dict[str, Any] = {}
+        self.units: dict[str, Any] = {}
+        self.runtime: dict[str, Any] = {}
+        self.extra: dict[str, Any] = {}
+        self._started = _dt.datetime.now(_dt.timezone.utc)
+        parent = self.out.parent
+        parent.mkdir(parents=True, exist_ok=True)
+        self.workdir = parent / f".{self.out.name}.tmp-{uuid.uuid4().hex[:8]}"
+        self.workdir.mkdir()
+        self._committed = False
+
+    @property
+    def manifest_dir(self) -> Path:
+        """The directory the finished manifest will live in (paths in it are relative to it)."""
+        return self.out.parent if self.single_file else self.out
+
+    # -- payloads --------------------------------------------------------------------------
+    def path(self, name: str) -> Path:
+        """Temporary path for payload ``name`` (may contain sub-directories)."""
+        if self.single_file and name != self.out.name:
+            raise EgorelightError(f"single-file output {self.out.name} cannot hold a payload named {name}", self.out)
+        target = self.workdir / name
+        target.parent.mkdir(parents=True, exist_ok=True)
+        return target
+
+    def npz_meta(self, frame_ids: Any = None, units: dict | None = None, **extra: Any) -> dict:
+        meta = {"kind": KIND_PREFIX + self.kind, "version": self.version, "stage": self.stage,
+                "units": units or {}, **extra}
+        if frame_ids is not None:
+            meta["frame_ids"] = [int(f) for f in np.asarray(frame_ids).ravel()]
+        return meta
+
+    def save_npz(self, name: str, arrays: dict[str, np.ndarray], frame_ids: Any = None,
+                 units: dict | None = None, **meta: Any) -> Path:
+        path = self.path(name)
+        write_npz(path, arrays, self.npz_meta(frame_ids, units, **meta))
+        if units:
+            self.units.update(units)
+        return path
+
+    def save_json(self, name: str, data: Any) -> Path:
+        path = self.path(name)
+        path.write_text(json.dumps(data, indent=2, sort_keys=True) + "\n")
+        return path
+
+    # -- commit ----------------------------------------------------------------------------
+    def _outputs(self) -> list[dict]:
+        entries = []
+        for file in sorted(p for p in self.workdir.rglob("*") if p.is_file()):
+            rel = file.relative_to(self.workdir).as_posix()
+            if rel == MANIFEST_NAME:
+                continue
+            entries.append({"name": rel, "path": rel, "digest": sha256_file(file), **_array_entry(file)})
+        return entries
+
+    def manifest(self) -> dict:
+        finished = _dt.datetime.now(_dt.timezone.utc)
+        self.timing.setdefault("wall_s", round((finished - self._started).total_seconds(), 3))
+        runtime = {"host": socket.gethostname(), **self.runtime}
+        manifest = {
+            "kind": KIND_PREFIX + self.kind,
+            "version": self.version,
+            "stage": self.stage,
+            "stage_version": self.stage_version,
+            "created": finished.isoformat(timespec="seconds"),
+            "tool_version": __version__,
+            "cache_key": self.cache_key,
+            "config": self.config,
+            "inputs": [a.as_input(self.manifest_dir) for a in self.inputs],
+            "outputs": self._outputs(),
+            "metrics": _jsonable(self.metrics),
+            "timing": _jsonable(self.timing),
+            "units": self.units,
+            "runtime": runtime,
+            **_jsonable(self.extra),
+        }
+        return manifest
+
+    def commit(self) -> Path:
+        """Write the manifest and move everything into place atomically; returns ``out``."""
+        if self._committed:
+            return self.out
+        files = [p for p in self.workdir.rglob("*") if p.is_file()]
+        if self.single_file and [p.name for p in files] != [self.out.name]:
+            raise EgorelightError(f"single-file output needs exactly the payload {self.out.name}", self.out)
+        manifest = self.manifest()
+        validate_manifest(manifest, self.out)
+        if self.single_file:
+            self._commit_single(manifest)
+        else:
+            self._commit_directory(manifest)
+        self._committed = True
+        return self.out
+
+    def _commit_directory(self, manifest: dict) -> None:
+        (self.workdir / MANIFEST_NAME).write_text(json.dumps(manifest, indent=2) + "\n")
+        _fsync_tree(self.workdir)
+        old = None
+        if self.out.exists():
+            if not self.out.is_dir():
+                raise EgorelightError("output exists and is not a directory", self.out)
+            old = self.out.with_name(f".{self.out.name}.old-{uuid.uuid4().hex[:8]}")
+            os.replace(self.out, old)
+        os.replace(self.workdir, self.out)
+        _fsync_dir(self.out.parent)
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+
+    def _commit_single(self, manifest: dict) -> None:
+        sidecar = self.out.with_name(self.out.name + SIDECAR_SUFFIX)
+        entry = manifest["outputs"][0]
+        entry["path"] = self.out.name
+        tmp_sidecar = self.workdir / (self.out.name + SIDECAR_SUFFIX)
+        tmp_sidecar.write_text(json.dumps(manifest, indent=2) + "\n")
+        _fsync_tree(self.workdir)
+        # Payload first, sidecar last: until the new sidecar lands, the old sidecar's digest no
+        # longer matches the payload, and open_artifact() (which verifies single files) refuses it.
+        os.replace(self.workdir / self.out.name, self.out)
+        os.replace(tmp_sidecar, sidecar)
+        _fsync_dir(self.out.parent)
+        shutil.rmtree(self.workdir, ignore_errors=True)
+
+    def abort(self) -> None:
+        shutil.rmtree(self.workdir, ignore_errors=True)
+
+    def __enter__(self) -> "ArtifactWriter":
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> bool:
+        if exc_type is None:
+            try:
+                self.commit()
+            finally:
+                if not self._committed:
+                    self.abort()
+        else:
+            self.abort()
+        return False
+
+
+def _jsonable(value: Any) -> Any:
+    """numpy scalars/arrays -> JSON types; NaN/inf -> None (JSON has no NaN)."""
+    if isinstance(value, dict):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return _jsonable(value.tolist())
+    if isinstance(value, (np.integer,)):
+        return int(value)
+    if isinstance(value, (float, np.floating)):
+        value = float(value)
+        return value if np.isfinite(value) else None
+    return value

@@ -1,0 +1,83 @@
+"""NumPy ``.npz`` payloads that describe themselves.
+
+Every npz the tool writes carries a ``__meta__`` entry: a JSON string with at least ``kind``
+and ``version`` (and usually ``units`` and ``frame_ids``), so a lone file found on disk can be
+identified by ``egorelight inspect``. Arrays are validated for NaN/inf on request.
+"""
+
+from __future__ import annotations
+
+import json
+import zipfile
+from pathlib import Path
+
+import numpy as np
+
+from egorelight_cli.errors import EgorelightError
+
+META_KEY = "__meta__"
+
+
+def write_npz(path: str | Path, arrays: dict[str, np.ndarray], meta: dict, compress: bool = True) -> None:
+    """Write arrays plus a JSON ``__meta__`` entry to ``path``.
+
+    Args:
+        path: output file (written as given; atomicity is the caller's, see ``artifacts``).
+        arrays: name -> array. Names must not start with ``__``.
+        meta: JSON-able dict; must hold ``kind`` and ``version``.
+    """
+    for key in ("kind", "version"):
+        if key not in meta:
+            raise EgorelightError(f"npz metadata lacks {key!r}", path)
+    for name in arrays:
+        if name.startswith("__"):
+            raise EgorelightError(f"array name {name!r} is reserved", path)
+    payload = {name: np.asarray(a) for name, a in arrays.items()}
+    payload[META_KEY] = np.array(json.dumps(meta, sort_keys=True))
+    with open(path, "wb") as handle:
+        (np.savez_compressed if compress else np.savez)(handle, **payload)
+
+
+def read_npz(path: str | Path, check_finite: bool = True) -> tuple[dict[str, np.ndarray], dict]:
+    """Read an npz written by :func:`write_npz`: (arrays, meta).
+
+    Raises EgorelightError for a missing or corrupt file, a missing ``__meta__`` entry, or (with
+    ``check_finite``) any NaN/inf in a floating array, naming the array.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise EgorelightError("file not found", path)
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            arrays = {name: data[name] for name in data.files}
+    except (zipfile.BadZipFile, ValueError, OSError, EOFError, KeyError) as exc:
+        raise EgorelightError(f"corrupt npz ({type(exc).__name__}: {exc})", path) from None
+    if META_KEY not in arrays:
+        raise EgorelightError("npz has no __meta__ entry (not written by egorelight)", path)
+    try:
+        meta = json.loads(str(arrays.pop(META_KEY)))
+    except json.JSONDecodeError:
+        raise EgorelightError("npz __meta__ entry is not valid JSON", path) from None
+    if check_finite:
+        check_arrays_finite(arrays, path)
+    return arrays, meta
+
+
+def read_npz_meta(path: str | Path) -> dict:
+    """Only the ``__meta__`` entry of an npz (cheap: does not load the other arrays)."""
+    path = Path(path)
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            if META_KEY not in data.files:
+                raise EgorelightError("npz has no __meta__ entry (not written by egorelight)", path)
+            return json.loads(str(data[META_KEY]))
+    except (zipfile.BadZipFile, ValueError, OSError, EOFError) as exc:
+        raise EgorelightError(f"corrupt npz ({type(exc).__name__}: {exc})", path) from None
+
+
+def check_arrays_finite(arrays: dict[str, np.ndarray], path: str | Path | None = None) -> None:
+    """Raise EgorelightError naming the first floating array holding NaN or inf."""
+    for name, array in arrays.items():
+        if np.issubdtype(array.dtype, np.floating) and not np.all(np.isfinite(array)):
+            bad = int(np.size(array) - np.count_nonzero(np.isfinite(array)))
+            raise EgorelightError(f"array {name!r} holds {bad} NaN/inf values", path)

@@ -1,0 +1,76 @@
+"""Running one stage: resolve its config, skip it when up to date, write its artifact atomically.
+
+This is the glue every CLI command uses, so that the commands themselves stay thin::
+
+    run = StageRun("ik", preset="cpu", sets=("solver.iterations=50",))
+    run.produce(out, kind="motion", inputs=[keypoints], write=lambda w: ...)
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+from egorelight_cli import console
+from egorelight_cli.artifacts import Artifact, ArtifactWriter, cache_key, is_up_to_date, sha256_file
+from egorelight_cli.config import Config, resolve_config
+from egorelight_cli.errors import EgorelightError
+
+
+@dataclass(frozen=True)
+class StageRun:
+    """One invocation of a stage with the user's global options."""
+
+    stage: str
+    preset: str | None = None
+    sets: tuple[str, ...] = ()
+    seed: int | None = None
+    force: bool = False
+    device: str = "auto"
+
+    def config(self) -> Config:
+        return resolve_config(self.stage, self.preset, self.sets, self.seed)
+
+    def produce(
+        self,
+        out: str | Path,
+        kind: str,
+        write: Callable[[ArtifactWriter, Config], None],
+        inputs: Sequence[Artifact] = (),
+        source_files: Sequence[str | Path] = (),
+    ) -> Path:
+        """Write artifact ``out`` of ``kind`` unless it is up to date.
+
+        Args:
+            out: artifact directory, or a single payload file (``x.npz``) with a sidecar.
+            kind: artifact kind (short name).
+            write: fills the writer (payloads, metrics); raising discards the partial output.
+            inputs: artifacts read; their digests enter the cache key and the manifest.
+            source_files: non-artifact files read (e.g. DDC files); their digests enter the cache
+                key and the manifest's ``sources``.
+        """
+        out = Path(out)
+        config = self.config()
+        sources = []
+        for path in source_files:
+            path = Path(path)
+            if not path.is_file():
+                raise EgorelightError("input file not found", path)
+            sources.append({"path": str(path), "digest": sha256_file(path)})
+        digests = [a.digest for a in inputs] + [s["digest"] for s in sources]
+        key = cache_key(self.stage, config.version, config.to_dict(), digests)
+        if not self.force and is_up_to_date(out, key, kind):
+            console.info(f"{out}: up to date, skipped (--force re-runs it)")
+            return out
+        started = time.perf_counter()
+        with ArtifactWriter(out, kind=kind, stage=self.stage, config=config, inputs=inputs, key=key) as writer:
+            if sources:
+                writer.extra["sources"] = sources
+            writer.runtime["device"] = self.device
+            writer.runtime["preset"] = config.preset
+            write(writer, config)
+            writer.timing["wall_s"] = round(time.perf_counter() - started, 3)
+        console.info(f"{out}: wrote {kind} ({writer.timing['wall_s']:.1f} s)")
+        return out

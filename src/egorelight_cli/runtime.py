@@ -1,0 +1,34 @@
+"""Run-time choices shared by every stage: compute device and seeding."""
+
+from __future__ import annotations
+
+import random
+
+import numpy as np
+
+from egorelight_cli.errors import EgorelightError
+
+DEVICES = ("auto", "cpu", "cuda")
+
+
+def resolve_device(name: str = "auto") -> "torch.device":  # noqa: F821
+    """``auto`` -> CUDA when available, else CPU; ``cuda`` without a GPU is an error."""
+    import torch
+
+    if name not in DEVICES:
+        raise EgorelightError(f"unknown device {name!r}; choose one of {', '.join(DEVICES)}")
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name == "cuda" and not torch.cuda.is_available():
+        raise EgorelightError("--device cuda was requested but no CUDA device is available")
+    return torch.device(name)
+
+
+def seed_everything(seed: int) -> np.random.Generator:
+    """Seed Python, NumPy and torch; returns a NumPy Generator for explicit use."""
+    import torch
+
+    random.seed(seed)
+    np.random.seed(seed % (2**32))
+    torch.manual_seed(seed)
+    return np.random.default_rng(seed)

@@ -1,0 +1,95 @@
+"""Stage configs: presets, typed --set overrides, errors that list valid keys."""
+
+from __future__ import annotations
+
+import pytest
+
+from egorelight_cli import config as config_module
+from egorelight_cli.config import coerce, resolve_config
+from egorelight_cli.errors import EgorelightError
+
+STAGE_YAML = """
+stage: demo
+version: 3
+defaults:
+  iterations: 100
+  step: 0.5
+  name: lm
+  verbose: false
+  sizes: [64, 128]
+  loss:
+    weight: 1.0
+    kind: l1
+presets:
+  tiny: {iterations: 2, loss: {weight: 0.1}}
+  cpu: {}
+  paper: {iterations: 1000}
+"""
+
+
+@pytest.fixture
+def stages(tmp_path, monkeypatch):
+    (tmp_path / "demo.yaml").write_text(STAGE_YAML)
+    monkeypatch.setattr(config_module, "stages_dir", lambda: tmp_path)
+    return tmp_path
+
+
+def test_defaults_presets_and_overrides(stages):
+    cfg = resolve_config("demo", "tiny", ["step=2", "loss.kind=l2", "sizes=[1, 2, 3]"], seed=7)
+    assert cfg.iterations == 2 and cfg.loss.weight == 0.1
+    assert cfg.step == 2.0 and isinstance(cfg.step, float)
+    assert cfg.loss.kind == "l2" and cfg.sizes == (1, 2, 3)
+    assert cfg.seed == 7 and cfg.version == 3 and cfg.preset == "tiny"
+    assert cfg.to_dict()["sizes"] == [1, 2, 3]
+    assert resolve_config("demo").iterations == 100  # cpu preset is the default
+    with pytest.raises(AttributeError):
+        cfg.iterations = 5
+
+
+def test_unknown_key_lists_valid_keys(stages):
+    with pytest.raises(EgorelightError) as info:
+        resolve_config("demo", "cpu", ["loss.wieght=2"])
+    message = str(info.value)
+    assert "unknown config key 'loss.wieght'" in message and "loss.weight" in message and "iterations" in message
+
+
+@pytest.mark.parametrize("item,expected", [
+    ("iterations=1.5", "takes a int"),
+    ("iterations=true", "takes a int"),
+    ("verbose=3", "takes a bool"),
+    ("sizes=7", "takes a list"),
+    ("sizes=[1, x]", "takes a int"),
+    ("step=abc", "takes a float"),
+])
+def test_type_errors(stages, item, expected):
+    with pytest.raises(EgorelightError, match=expected):
+        resolve_config("demo", "cpu", [item])
+
+
+def test_string_key_keeps_text(stages):
+    assert resolve_config("demo", "cpu", ["name=123"]).name == "123"
+
+
+def test_bad_preset_and_stage(stages):
+    with pytest.raises(EgorelightError, match="unknown preset 'huge'.*tiny, cpu, paper"):
+        resolve_config("demo", "huge")
+    with pytest.raises(EgorelightError, match="no configuration for stage 'nope'"):
+        resolve_config("nope")
+    with pytest.raises(EgorelightError, match="key=value"):
+        resolve_config("demo", "cpu", ["iterations"])
+
+
+def test_coerce_int_to_float_only():
+    assert coerce("a", 3, 1.0) == 3.0
+    with pytest.raises(EgorelightError):
+        coerce("a", 3.5, 1)
+
+
+def test_shipped_stage_files_resolve():
+    from egorelight_cli.resources import stages_dir
+
+    files = sorted(stages_dir().glob("*.yaml"))
+    assert files, "no stage configs shipped"
+    for path in files:
+        for preset in ("tiny", "cpu", "paper"):
+            resolve_config(path.stem, preset)
