@@ -104,11 +104,18 @@ def character_group() -> None:
     """Characters: the shipped default, DDC (Skeletool) import/export, previews."""
 
 
-def _character_run(ctx: click.Context):
-    from egorelight_cli.stages.character_cli import CharacterRun
+def _stage_run(ctx: click.Context, stage: str):
+    from egorelight_cli.pipeline import StageRun
 
     opts = _options(ctx)
-    return CharacterRun(preset=opts.preset, sets=tuple(opts.sets), seed=opts.seed, force=opts.force)
+    return StageRun(stage, preset=opts.preset, sets=tuple(opts.sets), seed=opts.seed, force=opts.force,
+                    device=opts.device)
+
+
+def _character_run(ctx: click.Context):
+    from egorelight_cli.stages.character_commands import CharacterCommands
+
+    return CharacterCommands(_stage_run(ctx, "character"))
 
 
 @character_group.command("default")

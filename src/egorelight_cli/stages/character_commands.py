@@ -1,0 +1,170 @@
+"""The ``egorelight character`` commands: default, from-makehuman, import-ddc, export-ddc, preview.
+
+A character artifact is a directory (or ``.npz`` + sidecar) holding ``character.npz`` (all
+arrays, see :class:`~egorelight_cli.structures.character.Character`) and ``template.obj`` for
+viewing. Its manifest metrics are the counts and the rest-pose self-check: skinning the template
+at the rigging pose must reproduce it.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import uuid
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from egorelight_cli.artifacts import Artifact, ArtifactWriter, manifest_path_for, open_artifact
+from egorelight_cli.config import Config
+from egorelight_cli.errors import EgorelightError
+from egorelight_cli.io.character import read_character_npz, write_character_npz
+from egorelight_cli.io.meshes import write_obj
+from egorelight_cli.pipeline import StageRun
+from egorelight_cli.resources import data_dir
+from egorelight_cli.structures.character import Character
+
+CHARACTER_PAYLOAD = "character.npz"
+DEFAULT_CHARACTER_NAME = "default"
+DEFAULT_CHARACTER_FILE = "default_character.npz"
+
+
+def default_character_path() -> Path:
+    return data_dir() / DEFAULT_CHARACTER_FILE
+
+
+def load_character(spec: str | Path) -> tuple[Character, Artifact | None]:
+    """Load a character from ``default``, a character artifact (directory or ``.npz`` with
+    sidecar), a bare ``character.npz`` or a DDC ``.character`` file.
+
+    Returns the character and the artifact it came from (None for non-artifact sources).
+    """
+    if str(spec) == DEFAULT_CHARACTER_NAME:
+        path = default_character_path()
+        if not path.is_file():
+            raise EgorelightError("the shipped default character is missing from the installation", path)
+        return read_character_npz(path), None
+    path = Path(spec)
+    if not path.exists():
+        raise EgorelightError("character not found", path)
+    if path.suffix == ".character":
+        from egorelight_cli.io.ddc import read_ddc_character
+
+        return read_ddc_character(path), None
+    manifest_path, _ = manifest_path_for(path)
+    if path.is_file() and path.suffix == ".npz" and not manifest_path.is_file():
+        return read_character_npz(path), None
+    artifact = open_artifact(path, kind="character")
+    return read_character_npz(artifact.output(CHARACTER_PAYLOAD) if not artifact.single_file else artifact.path), artifact
+
+
+def rest_pose_error_m(character: Character) -> float:
+    """Max distance (m) between the template and the template skinned at the rigging pose."""
+    import torch
+
+    from egorelight_cli.geometry.skinning import dual_quaternion_skinning
+    from egorelight_cli.geometry.skeleton import bone_transforms
+
+    theta = torch.as_tensor(character.rest_theta, dtype=torch.float64)
+    bones = bone_transforms(theta, character)
+    verts = torch.as_tensor(character.vertices, dtype=torch.float64)
+    posed = dual_quaternion_skinning(verts, bones, torch.as_tensor(character.skin_weights))
+    return float((posed - verts).norm(dim=-1).max())
+
+
+def character_metrics(character: Character) -> dict:
+    sk = character.skeleton
+    return {
+        "num_vertices": character.num_vertices,
+        "num_faces": int(character.faces.shape[0]),
+        "num_joints": sk.num_joints,
+        "num_dofs": sk.num_dofs,
+        "num_skin_bones": len(character.skin_bone_names),
+        "num_graph_nodes": character.graph.num_nodes,
+        "num_keypoints": len(character.keypoint_names),
+        "standard_57_keypoints": character.has_standard_keypoints,
+        "height_m": float(np.ptp(character.vertices[:, 1])),
+        "rest_pose_skinning_error_mm": 1000.0 * rest_pose_error_m(character),
+    }
+
+
+def write_character(writer: ArtifactWriter, character: Character, **meta) -> None:
+    """Fill a character artifact: ``character.npz`` (+ ``template.obj`` for directories)."""
+    payload = writer.out.name if writer.single_file else CHARACTER_PAYLOAD
+    write_character_npz(writer.path(payload), character, **meta)
+    if not writer.single_file:
+        write_obj(writer.path("template.obj"), character.vertices, character.faces,
+                  face_uvs=character.face_uvs, vertex_colors=character.vertex_colors)
+    writer.units.update({"length": "m", "angle": "rad"})
+    writer.metrics.update(character_metrics(character))
+
+
+def _replace_atomically(tmp: Path, target: Path) -> None:
+    if target.is_dir():
+        old = target.with_name(f".{target.name}.old-{uuid.uuid4().hex[:8]}")
+        os.replace(target, old)
+        os.replace(tmp, target)
+        shutil.rmtree(old, ignore_errors=True)
+    else:
+        os.replace(tmp, target)
+
+
+@dataclass(frozen=True)
+class CharacterCommands:
+    """The ``character`` sub-commands over one :class:`StageRun` (global options)."""
+
+    run: StageRun
+
+    def default(self, out: Path) -> Path:
+        source = default_character_path()
+        return self.run.produce(out, "character", lambda w, cfg: write_character(w, read_character_npz(source)),
+                                source_files=[source])
+
+    def from_makehuman(self, out: Path, data_dir_: Path | None) -> Path:
+        from egorelight_cli.stages.character import character_from_makehuman
+
+        def write(w: ArtifactWriter, cfg: Config) -> None:
+            character = character_from_makehuman(data_dir_, target_vertices=cfg.target_vertices,
+                                                 num_graph_nodes=cfg.graph_nodes, seed=cfg.seed)
+            write_character(w, character)
+        return self.run.produce(out, "character", write)
+
+    def import_ddc(self, path: Path, out: Path) -> Path:
+        from egorelight_cli.io.ddc import ddc_character_files, read_ddc_character
+
+        if not path.is_file():
+            raise EgorelightError("DDC character file not found", path)
+        sources = ddc_character_files(path)
+        return self.run.produce(out, "character", lambda w, cfg: write_character(w, read_ddc_character(path)),
+                                source_files=sources)
+
+    def export_ddc(self, character_path: Path, out_dir: Path, name: str) -> Path:
+        from egorelight_cli.io.ddc import write_ddc_character
+
+        character, _ = load_character(character_path)
+        out_dir.parent.mkdir(parents=True, exist_ok=True)
+        tmp = out_dir.with_name(f".{out_dir.name}.tmp-{uuid.uuid4().hex[:8]}")
+        tmp.mkdir()
+        try:
+            write_ddc_character(character, tmp, name=name)
+            _replace_atomically(tmp, out_dir)
+        finally:
+            shutil.rmtree(tmp, ignore_errors=True)
+        return out_dir / f"{name}.character"
+
+    def preview(self, character_path: Path, out: Path) -> Path:
+        from egorelight_cli.io.images import write_image
+        from egorelight_cli.render.preview import character_preview_image
+
+        character, _ = load_character(character_path)
+        cfg = self.run.config()
+        image = character_preview_image(character, width=cfg.preview_width, height=cfg.preview_height)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        tmp = out.with_name(f".{out.stem}.tmp-{uuid.uuid4().hex[:8]}{out.suffix}")
+        try:
+            write_image(tmp, image)
+            os.replace(tmp, out)
+        finally:
+            tmp.unlink(missing_ok=True)
+        return out
