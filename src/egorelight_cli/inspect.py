@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from egorelight_cli.artifacts import MANIFEST_NAME, SIDECAR_SUFFIX, manifest_path_for, open_artifact
+from egorelight_cli.artifacts import MANIFEST_NAME, manifest_path_for, open_artifact
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.io.exr import read_exr
 from egorelight_cli.io.images import read_image

@@ -7,6 +7,7 @@ identified by ``egorelight inspect``. Arrays are validated for NaN/inf on reques
 
 from __future__ import annotations
 
+import io
 import json
 import zipfile
 from pathlib import Path
@@ -34,15 +35,29 @@ def write_npz(path: str | Path, arrays: dict[str, np.ndarray], meta: dict, compr
             raise EgorelightError(f"array name {name!r} is reserved", path)
     payload = {name: np.asarray(a) for name, a in arrays.items()}
     payload[META_KEY] = np.array(json.dumps(meta, sort_keys=True))
-    with open(path, "wb") as handle:
-        (np.savez_compressed if compress else np.savez)(handle, **payload)
+    write_npz_deterministic(path, payload, compress)
 
 
-def read_npz(path: str | Path, check_finite: bool = True) -> tuple[dict[str, np.ndarray], dict]:
+def write_npz_deterministic(path: str | Path, arrays: dict[str, np.ndarray], compress: bool = True) -> None:
+    """``np.savez`` with sorted entries and fixed zip timestamps: equal arrays give equal bytes,
+    so digests (and cache keys built from them) depend on content only."""
+    method = zipfile.ZIP_DEFLATED if compress else zipfile.ZIP_STORED
+    with zipfile.ZipFile(path, "w", compression=method, allowZip64=True) as archive:
+        for name in sorted(arrays):
+            buffer = io.BytesIO()
+            np.lib.format.write_array(buffer, np.asanyarray(arrays[name]), allow_pickle=False)
+            info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+            info.compress_type = method
+            info.external_attr = 0o644 << 16
+            archive.writestr(info, buffer.getvalue(), compresslevel=6 if compress else None)
+
+
+def read_npz(path: str | Path, check_finite: bool = True, allow_inf: tuple[str, ...] = ()) -> tuple[dict[str, np.ndarray], dict]:
     """Read an npz written by :func:`write_npz`: (arrays, meta).
 
     Raises EgorelightError for a missing or corrupt file, a missing ``__meta__`` entry, or (with
-    ``check_finite``) any NaN/inf in a floating array, naming the array.
+    ``check_finite``) any NaN/inf in a floating array, naming the array. Arrays named in
+    ``allow_inf`` may hold +-inf (e.g. "no limit") but never NaN.
     """
     path = Path(path)
     if not path.is_file():
@@ -59,7 +74,7 @@ def read_npz(path: str | Path, check_finite: bool = True) -> tuple[dict[str, np.
     except json.JSONDecodeError:
         raise EgorelightError("npz __meta__ entry is not valid JSON", path) from None
     if check_finite:
-        check_arrays_finite(arrays, path)
+        check_arrays_finite(arrays, path, allow_inf)
     return arrays, meta
 
 
@@ -75,9 +90,16 @@ def read_npz_meta(path: str | Path) -> dict:
         raise EgorelightError(f"corrupt npz ({type(exc).__name__}: {exc})", path) from None
 
 
-def check_arrays_finite(arrays: dict[str, np.ndarray], path: str | Path | None = None) -> None:
-    """Raise EgorelightError naming the first floating array holding NaN or inf."""
+def check_arrays_finite(arrays: dict[str, np.ndarray], path: str | Path | None = None,
+                        allow_inf: tuple[str, ...] = ()) -> None:
+    """Raise EgorelightError naming the first floating array holding NaN or inf (only NaN for
+    the arrays named in ``allow_inf``)."""
     for name, array in arrays.items():
-        if np.issubdtype(array.dtype, np.floating) and not np.all(np.isfinite(array)):
+        if not np.issubdtype(array.dtype, np.floating):
+            continue
+        if name in allow_inf:
+            if np.isnan(array).any():
+                raise EgorelightError(f"array {name!r} holds {int(np.isnan(array).sum())} NaN values", path)
+        elif not np.all(np.isfinite(array)):
             bad = int(np.size(array) - np.count_nonzero(np.isfinite(array)))
             raise EgorelightError(f"array {name!r} holds {bad} NaN/inf values", path)

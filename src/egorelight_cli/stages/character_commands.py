@@ -19,19 +19,13 @@ import numpy as np
 from egorelight_cli.artifacts import Artifact, ArtifactWriter, manifest_path_for, open_artifact
 from egorelight_cli.config import Config
 from egorelight_cli.errors import EgorelightError
-from egorelight_cli.io.character import read_character_npz, write_character_npz
+from egorelight_cli.io.character import default_character_path, read_character_npz, write_character_npz
 from egorelight_cli.io.meshes import write_obj
 from egorelight_cli.pipeline import StageRun
-from egorelight_cli.resources import data_dir
 from egorelight_cli.structures.character import Character
 
 CHARACTER_PAYLOAD = "character.npz"
 DEFAULT_CHARACTER_NAME = "default"
-DEFAULT_CHARACTER_FILE = "default_character.npz"
-
-
-def default_character_path() -> Path:
-    return data_dir() / DEFAULT_CHARACTER_FILE
 
 
 def load_character(spec: str | Path) -> tuple[Character, Artifact | None]:

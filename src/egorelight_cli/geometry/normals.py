@@ -1,0 +1,69 @@
+"""Face and vertex normals of triangle meshes (batched, differentiable).
+
+Counter-clockwise triangles (seen from outside) give outward normals:
+``n = (v1 - v0) x (v2 - v0)``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from egorelight_cli.geometry.rotations import cross
+
+
+def _faces_tensor(faces, device: torch.device) -> torch.Tensor:
+    return torch.as_tensor(np.asarray(faces) if not torch.is_tensor(faces) else faces, dtype=torch.int64, device=device).reshape(-1, 3)
+
+
+def _normalize(v: torch.Tensor, eps: float) -> torch.Tensor:
+    return v / torch.linalg.vector_norm(v, dim=-1, keepdim=True).clamp_min(eps)
+
+
+def face_area_normals(vertices: torch.Tensor, faces) -> torch.Tensor:
+    """Unnormalised face normals, ``(v1 - v0) x (v2 - v0)`` (length = twice the face area).
+
+    Args:
+        vertices: (...,V,3).
+        faces: (F,3) int (numpy or tensor).
+    Returns:
+        (...,F,3) in squared vertex units.
+    """
+    f = _faces_tensor(faces, vertices.device)
+    v0 = vertices.index_select(-2, f[:, 0])
+    v1 = vertices.index_select(-2, f[:, 1])
+    v2 = vertices.index_select(-2, f[:, 2])
+    return cross(v1 - v0, v2 - v0)
+
+
+def face_normals(vertices: torch.Tensor, faces, eps: float = 1e-20) -> torch.Tensor:
+    """Unit face normals; degenerate faces give zero vectors.
+
+    Args:
+        vertices: (...,V,3).
+        faces: (F,3).
+        eps: norm floor.
+    Returns:
+        (...,F,3).
+    """
+    return _normalize(face_area_normals(vertices, faces), eps)
+
+
+def vertex_normals(vertices: torch.Tensor, faces, eps: float = 1e-20) -> torch.Tensor:
+    """Area-weighted unit vertex normals (sum of incident face area normals, normalised).
+
+    Vertices without faces get zero vectors.
+
+    Args:
+        vertices: (...,V,3).
+        faces: (F,3).
+        eps: norm floor.
+    Returns:
+        (...,V,3).
+    """
+    f = _faces_tensor(faces, vertices.device)
+    fn = face_area_normals(vertices, f)  # (...,F,3)
+    acc = torch.zeros_like(vertices)
+    for corner in range(3):
+        acc = acc.index_add(-2, f[:, corner], fn)
+    return _normalize(acc, eps)

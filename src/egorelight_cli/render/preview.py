@@ -1,0 +1,122 @@
+"""Preview images a person can look at: the character's rest pose with skeleton and keypoints."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from egorelight_cli.geometry.cameras import Camera, look_at, project_world
+from egorelight_cli.render.raster import rasterize
+from egorelight_cli.structures.character import Character
+from egorelight_cli.structures.keypoints import BODY_SLICE, LEFT_HAND_SLICE, RIGHT_HAND_SLICE
+
+#: RGB colours for LIP human-parsing labels (others: grey).
+LABEL_COLOURS = {
+    2: (60, 40, 30), 5: (70, 110, 190), 9: (60, 60, 70), 13: (225, 180, 150), 14: (215, 170, 140),
+    15: (215, 170, 140), 16: (210, 165, 135), 17: (210, 165, 135), 18: (40, 35, 35), 19: (40, 35, 35),
+}
+DEFAULT_COLOUR = (190, 190, 190)
+KEYPOINT_COLOURS = {"body": (255, 60, 40), "left": (40, 200, 60), "right": (40, 120, 255)}
+
+
+def framing_camera(vertices: np.ndarray, view_dir: np.ndarray, width: int, height: int, name: str) -> Camera:
+    """A pinhole camera looking along ``view_dir`` at the mesh's bounding box, filling ~90% of
+    the image height."""
+    lo, hi = vertices.min(0), vertices.max(0)
+    centre = 0.5 * (lo + hi)
+    extent = float(np.max(hi - lo))
+    distance = 3.0 * extent
+    fy = 0.9 * height * distance / max(float(hi[1] - lo[1]), 1e-6)
+    fy = min(fy, 0.9 * width * distance / max(extent, 1e-6) * 2.0)
+    K = np.array([[fy, 0, (width - 1) / 2], [0, fy, (height - 1) / 2], [0, 0, 1]])
+    eye = centre - distance * np.asarray(view_dir, dtype=np.float64)
+    return Camera(model="pinhole", K=K, dist=np.zeros(5), width=width, height=height,
+                  T_cam_from_world=look_at(eye, centre), name=name)
+
+
+def shade_mesh(character: Character, vertices: np.ndarray, camera: Camera) -> np.ndarray:
+    """(H,W,3) uint8: segmentation colours with head-light Lambert shading on white."""
+    raster = rasterize(vertices, character.faces, camera)
+    palette = np.array([LABEL_COLOURS.get(int(l), DEFAULT_COLOUR) for l in character.segmentation], np.float32)
+    face_colour = palette[character.faces].mean(axis=1)
+    colour = np.full((camera.height, camera.width, 3), 255.0, np.float32)
+    mask = raster.mask
+    to_camera = camera.centre_world[None, :] - raster.points[mask]
+    to_camera /= np.linalg.norm(to_camera, axis=1, keepdims=True)
+    lambert = np.abs(np.sum(raster.normal[mask] * to_camera, axis=1))
+    colour[mask] = face_colour[raster.face_id[mask]] * (0.35 + 0.65 * lambert)[:, None]
+    return np.clip(colour, 0, 255).astype(np.uint8)
+
+
+def root_translation_joints(parents: np.ndarray, joint_types: np.ndarray) -> np.ndarray:
+    """(J,) bool: the prismatic chain at the root (global translation), not a body segment."""
+    from egorelight_cli.structures.skeleton import PRISMATIC
+
+    flags = np.zeros(len(parents), dtype=bool)
+    for j, parent in enumerate(parents):
+        flags[j] = joint_types[j] == PRISMATIC and (parent < 0 or flags[parent])
+    return flags
+
+
+def draw_skeleton(image: np.ndarray, joints_world: np.ndarray, parents: np.ndarray, joint_types: np.ndarray,
+                  keypoints_world: np.ndarray, camera: Camera) -> None:
+    """Draw bones (parent-child segments longer than 1 mm, without the root translation chain)
+    and the 57 keypoints in place."""
+    scale = max(1, image.shape[0] // 400)
+    joints_px = np.asarray(project_world(camera, joints_world))
+    skip = root_translation_joints(parents, joint_types)
+    for child, parent in enumerate(parents):
+        if parent < 0 or skip[child] or np.linalg.norm(joints_world[child] - joints_world[parent]) < 1e-3:
+            continue
+        a, b = joints_px[child], joints_px[parent]
+        if np.all(np.isfinite([a, b])):
+            cv2.line(image, tuple(int(round(v)) for v in a), tuple(int(round(v)) for v in b), (30, 30, 30),
+                     scale, cv2.LINE_AA)
+    keypoints_px = np.asarray(project_world(camera, keypoints_world))
+    groups = (("body", BODY_SLICE, 4), ("left", LEFT_HAND_SLICE, 2), ("right", RIGHT_HAND_SLICE, 2))
+    for group, part, radius in groups:
+        for point in keypoints_px[part]:
+            if np.all(np.isfinite(point)):
+                cv2.circle(image, (int(round(point[0])), int(round(point[1]))), radius * scale,
+                           KEYPOINT_COLOURS[group], -1, cv2.LINE_AA)
+
+
+def facing_direction(keypoints: np.ndarray) -> np.ndarray:
+    """Unit horizontal direction the character faces, from ankle-to-toe vectors (57 keypoints).
+
+    Characters differ (the shipped default faces -Z, the public DDC example +Z), so previews
+    derive it instead of assuming one.
+    """
+    from egorelight_cli.structures.keypoints import KEYPOINT_NAMES
+
+    index = KEYPOINT_NAMES.index
+    forward = sum(keypoints[index(f"{s}ToeBase")] - keypoints[index(f"{s}Foot")] for s in ("Left", "Right"))
+    forward = np.array([forward[0], 0.0, forward[2]])
+    norm = np.linalg.norm(forward)
+    return forward / norm if norm > 1e-6 else np.array([0.0, 0.0, -1.0])
+
+
+def character_preview_image(character: Character, width: int = 384, height: int = 640) -> np.ndarray:
+    """(height, 2*width, 3) uint8 RGB: front and side view of the rest pose with the skeleton
+    and keypoints (body red, left hand green, right hand blue), with a caption."""
+    import torch
+
+    from egorelight_cli.geometry.skeleton import forward_kinematics, keypoint_positions
+
+    theta = torch.as_tensor(character.rest_theta, dtype=torch.float64)
+    T_world_from_joint = forward_kinematics(theta, character.skeleton)
+    joints = T_world_from_joint[..., :3, 3].numpy()
+    keypoints = keypoint_positions(theta, character, T_world_from_joint).numpy()
+    views = []
+    forward = facing_direction(keypoints) if character.has_standard_keypoints else np.array([0.0, 0.0, -1.0])
+    side = np.cross(forward, [0.0, 1.0, 0.0])  # the character's right
+    for name, view_dir in (("front", -forward), ("side", side)):
+        camera = framing_camera(character.vertices, view_dir, width, height, name)
+        image = shade_mesh(character, character.vertices, camera)
+        draw_skeleton(image, joints, character.skeleton.parents, character.skeleton.joint_types, keypoints, camera)
+        views.append(image)
+    image = np.concatenate(views, axis=1)
+    caption = (f"{character.name}: {character.num_vertices} verts, {character.skeleton.num_dofs} DoF, "
+               f"{len(character.skin_bone_names)} bones, {character.graph.num_nodes} graph nodes")
+    cv2.putText(image, caption, (8, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
+    return image
