@@ -157,16 +157,18 @@ def test_unknown_method_raises():
         skin_points(torch.zeros(1, 3), torch.eye(4)[None], np.ones((1, 1)), "xyz")
 
 
-def _posed_tube(params, char, method):
-    theta = torch.cat([torch.zeros(4, dtype=params.dtype), params])
-    return skin_points(torch.as_tensor(char.vertices[::37]), bone_transforms(theta, char), char.skin_weights[::37], method)
-
-
 @pytest.mark.parametrize("method", ["dqs", "lbs"])
 def test_skinning_gradcheck_through_fk(method):
     char = synth.make_character()
+    points = torch.as_tensor(char.vertices[::37])
+    weights = char.skin_weights[::37].copy()
+
+    def posed(params):
+        theta = torch.cat([torch.zeros(4, dtype=params.dtype), params])
+        return skin_points(points, bone_transforms(theta, char), weights, method)
+
     params = torch.tensor([0.3, -0.4, 0.8], dtype=torch.float64, requires_grad=True)
-    assert torch.autograd.gradcheck(lambda p: _posed_tube(p, char, method), (params,))
+    assert torch.autograd.gradcheck(posed, (params,))
 
 
 def test_skinning_gradcheck_wrt_points_and_weights():
@@ -183,3 +185,17 @@ def test_tube_dqs_float32_matches_float64():
     out64 = skin_points(torch.as_tensor(char.vertices), bone_transforms(theta, char), char.skin_weights)
     out32 = skin_points(torch.as_tensor(char.vertices, dtype=torch.float32), bone_transforms(theta.float(), char), char.skin_weights)
     torch.testing.assert_close(out32.double(), out64, atol=1e-6, rtol=1e-5)
+
+
+@pytest.mark.parametrize("method", ["dqs", "lbs"])
+def test_sparse_plan_and_gather_paths_agree(method):
+    """Constant weights use sparse matrices; weights requiring grad use a gather: same result."""
+    T = random_rigid(6, seed=10, batch=(2, 3))
+    W = random_weights(30, 6, 4, seed=11)
+    points = torch.randn(30, 3, dtype=torch.float64)
+    a = skin_points(points, T, W, method)  # numpy: cached sparse plan
+    b = skin_points(points, T, torch.as_tensor(W), method)  # tensor without grad: sparse plan
+    c = skin_points(points, T, torch.as_tensor(W).requires_grad_(True), method)  # gather
+    assert a.shape == (2, 3, 30, 3)
+    torch.testing.assert_close(a, b)
+    torch.testing.assert_close(a, c)

@@ -88,7 +88,8 @@ def validate_manifest(manifest: dict, path: str | Path | None = None) -> None:
         error = jsonschema.exceptions.best_match(validator.iter_errors(manifest))
         if error is not None:
             where = "/".join(str(p) for p in error.absolute_path) or "(top level)"
-            raise EgorelightError(f"manifest does not match {name} at {where}: {error.message}", path)
+            message = error.message if len(error.message) <= 160 else error.message[:80] + " ... " + error.message[-60:]
+            raise EgorelightError(f"manifest does not match {name} at {where}: {message}", path)
 
 
 # ----------------------------------------------------------------------------------- hashing

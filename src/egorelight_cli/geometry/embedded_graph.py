@@ -29,7 +29,13 @@ import torch
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.geometry.rotations import euler_to_matrix, transform_points
 from egorelight_cli.geometry.skeleton import bone_transforms
-from egorelight_cli.geometry.skinning import SKINNING_METHODS, skin_points, skinning_transforms
+from egorelight_cli.geometry.skinning import (
+    SKINNING_METHODS,
+    append_homogeneous_row,
+    skin_points,
+    skinning_transforms,
+    sparse_blend,
+)
 from egorelight_cli.structures.character import Character, EmbeddedGraph
 
 MIN_NODE_RADIUS = 3  # hops; DDC's lower bound on a node's radius
@@ -360,17 +366,12 @@ def blend_node_values(values: torch.Tensor, graph: EmbeddedGraph) -> torch.Tenso
     Returns:
         (...,V,C).
     """
-    W = graph_weight_matrix(graph, values.dtype, values.device)
-    batch, (N, C) = values.shape[:-2], values.shape[-2:]
-    X = values.reshape(-1, N, C).permute(1, 0, 2).reshape(N, -1)
-    Y = torch.sparse.mm(W, X)
-    return Y.reshape(W.shape[0], -1, C).permute(1, 0, 2).reshape(batch + (W.shape[0], C))
+    return sparse_blend(graph_weight_matrix(graph, values.dtype, values.device), values)
 
 
-def _as_tensor(x, like: torch.Tensor | None = None, dtype: torch.dtype | None = None) -> torch.Tensor:
-    if like is not None:
-        return torch.as_tensor(x, dtype=like.dtype, device=like.device)
-    return torch.as_tensor(x, dtype=dtype)
+def _as_tensor(x, like: torch.Tensor) -> torch.Tensor:
+    """``x`` (numpy or tensor) as a tensor of ``like``'s dtype and device."""
+    return torch.as_tensor(x, dtype=like.dtype, device=like.device)
 
 
 def node_positions(vertices_rest: torch.Tensor, graph: EmbeddedGraph) -> torch.Tensor:
@@ -429,6 +430,19 @@ def embedded_deformation(vertices_rest: torch.Tensor, graph: EmbeddedGraph, node
 # ----------------------------------------------------------------------------------------------
 
 
+def _node_skin_weights(skin_weights, graph: EmbeddedGraph):
+    """Rows of the skin weights at the node vertices; for numpy, one cached array per graph."""
+    if torch.is_tensor(skin_weights):
+        return skin_weights.index_select(0, torch.as_tensor(graph.node_vertex, device=skin_weights.device))
+    skin_weights = np.asarray(skin_weights)
+    per_graph = _SPARSE_CACHE.setdefault(graph, {})
+    entry = per_graph.get("node_skin_weights")
+    if entry is None or entry[0]() is not skin_weights:
+        entry = (weakref.ref(skin_weights), skin_weights[graph.node_vertex])
+        per_graph["node_skin_weights"] = entry
+    return entry[1]
+
+
 def node_skinning_transforms(bone_T: torch.Tensor, skin_weights, graph: EmbeddedGraph, method: str = "dqs") -> torch.Tensor:
     """Skinning transforms evaluated at the node vertices (DQS or LBS of their skin weights).
 
@@ -440,11 +454,13 @@ def node_skinning_transforms(bone_T: torch.Tensor, skin_weights, graph: Embedded
     Returns:
         (...,N,4,4).
     """
-    if torch.is_tensor(skin_weights):
-        node_weights = skin_weights.index_select(0, torch.as_tensor(graph.node_vertex, device=skin_weights.device))
-    else:
-        node_weights = np.asarray(skin_weights)[graph.node_vertex]
-    return skinning_transforms(bone_T, node_weights, method)
+    return skinning_transforms(bone_T, _node_skin_weights(skin_weights, graph), method)
+
+
+def _graph_blended_top(bone_T: torch.Tensor, skin_weights, graph: EmbeddedGraph, method: str) -> torch.Tensor:
+    """(...,V,3,4) top rows of ``sum_k w_vk M_k``."""
+    M = node_skinning_transforms(bone_T, skin_weights, graph, method)
+    return blend_node_values(M[..., :3, :].flatten(-2), graph).unflatten(-1, (3, 4))
 
 
 def graph_skinning_transforms(bone_T: torch.Tensor, skin_weights, graph: EmbeddedGraph, method: str = "dqs") -> torch.Tensor:
@@ -454,14 +470,15 @@ def graph_skinning_transforms(bone_T: torch.Tensor, skin_weights, graph: Embedde
     the result is affine (not rigid) in general. Feed it to
     :func:`egorelight_cli.geometry.skinning.inverse_skinning_points` for ``W^-1``.
 
+    Args:
+        bone_T: (...,B,4,4) bone skinning transforms.
+        skin_weights: (V,B).
+        graph: the embedded graph.
+        method: 'dqs' or 'lbs'.
     Returns:
         (...,V,4,4).
     """
-    M = node_skinning_transforms(bone_T, skin_weights, graph, method)
-    top = blend_node_values(M[..., :3, :].flatten(-2), graph).unflatten(-1, (3, 4))
-    bottom = torch.zeros(top.shape[:-2] + (1, 4), dtype=top.dtype, device=top.device)
-    bottom[..., 0, 3] = 1.0
-    return torch.cat([top, bottom], -2)
+    return append_homogeneous_row(_graph_blended_top(bone_T, skin_weights, graph, method))
 
 
 def pose_through_graph(points: torch.Tensor, bone_T: torch.Tensor, skin_weights, graph: EmbeddedGraph,
@@ -480,7 +497,7 @@ def pose_through_graph(points: torch.Tensor, bone_T: torch.Tensor, skin_weights,
     Returns:
         (...,V,3) posed positions, metres.
     """
-    return transform_points(graph_skinning_transforms(bone_T, skin_weights, graph, method), points)
+    return transform_points(_graph_blended_top(bone_T, skin_weights, graph, method), points)
 
 
 def pose_character(character: Character, theta: torch.Tensor, node_euler: torch.Tensor | None = None,
@@ -503,12 +520,13 @@ def pose_character(character: Character, theta: torch.Tensor, node_euler: torch.
     if skinning not in SKINNING_METHODS:
         raise EgorelightError(f"unknown skinning method {skinning!r}, expected one of {SKINNING_METHODS}")
     theta = theta if torch.is_tensor(theta) else torch.as_tensor(np.asarray(theta), dtype=torch.float64)
-    like = theta
-    rest = torch.as_tensor(character.vertices, dtype=like.dtype, device=like.device)
+    if not theta.is_floating_point():
+        theta = theta.to(torch.float64)
+    rest = _as_tensor(character.vertices, like=theta)
     if node_euler is None and node_translation is None:
         canonical = rest if vertex_offsets is None else rest + vertex_offsets
     else:
-        zeros = torch.zeros(character.graph.num_nodes, 3, dtype=like.dtype, device=like.device)
+        zeros = torch.zeros(character.graph.num_nodes, 3, dtype=theta.dtype, device=theta.device)
         canonical = embedded_deformation(
             rest, character.graph,
             zeros if node_euler is None else node_euler,

@@ -42,20 +42,6 @@ def _cached(owner: object, key: tuple, build):
     return per_owner[key]
 
 
-def joint_depths(parents: np.ndarray) -> np.ndarray:
-    """Depth of every joint in the tree (roots have depth 0).
-
-    Args:
-        parents: (J,) int, parent index or -1; parents listed before children.
-    Returns:
-        (J,) int64.
-    """
-    depth = np.zeros(len(parents), dtype=np.int64)
-    for j, p in enumerate(parents):
-        depth[j] = 0 if p < 0 else depth[p] + 1
-    return depth
-
-
 def _skeleton_tensors(skeleton: Skeleton, dtype: torch.dtype, device: torch.device) -> _SkeletonTensors:
     def build() -> _SkeletonTensors:
         as_t = lambda a: torch.as_tensor(a, dtype=dtype, device=device)  # noqa: E731

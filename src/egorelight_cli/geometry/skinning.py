@@ -11,18 +11,24 @@ Inputs:
     * ``weights``: (V,B) skinning weights, rows summing to 1 (numpy or torch). Internally they
       are reduced to sparse influences (V,K), K = the largest number of non-zero weights of
       any vertex (6 for DDC characters), sorted by decreasing weight; this is exact, not a
-      truncation. A weights tensor that requires grad stays differentiable.
+      truncation.
+
+Implementation (measured in ``bench/bench_skinning.py``): for constant weights (numpy, or a
+tensor that does not require grad) the blends are sparse (V,B) matrix products with the
+frames in the columns; for DQS the sign rule is folded into the sparse matrix by blending
+*(main bone, bone)* pairs: every pair's signed dual quaternion is computed once per frame, and
+a constant sparse (V,P) matrix blends them. Plans for numpy weights are cached per array. A
+weights tensor that requires grad uses a gather of the K influences instead (differentiable
+in the weights too). Both paths are differentiable in the transforms and points.
 
 The inverse (the paper's ``W^-1``, used to unwarp posed-space residuals to the canonical space)
 inverts the blended per-vertex transform returned by :func:`skinning_transforms`.
-
-Gathering the K influences of every vertex (rather than a dense (V,B) matmul) was measured
-faster on CPU, see ``bench/bench_skinning.py``.
 """
 
 from __future__ import annotations
 
 import weakref
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -41,16 +47,16 @@ from egorelight_cli.geometry.rotations import (
 
 SKINNING_METHODS = ("dqs", "lbs")
 
-_INFLUENCE_CACHE: dict[int, tuple[weakref.ref, dict]] = {}  # id(array) -> (ref, {(dtype, device): influences})
+_ARRAY_CACHE: dict[int, tuple[weakref.ref, dict]] = {}  # id(array) -> (ref, {key: value})
 
 
 def _array_cache(array: np.ndarray) -> dict:
     """A per-numpy-array cache (arrays are unhashable; keyed by id, dropped when it dies)."""
     key = id(array)
-    entry = _INFLUENCE_CACHE.get(key)
+    entry = _ARRAY_CACHE.get(key)
     if entry is None or entry[0]() is not array:
-        entry = (weakref.ref(array, lambda _r, k=key: _INFLUENCE_CACHE.pop(k, None)), {})
-        _INFLUENCE_CACHE[key] = entry
+        entry = (weakref.ref(array, lambda _r, k=key: _ARRAY_CACHE.pop(k, None)), {})
+        _ARRAY_CACHE[key] = entry
     return entry[1]
 
 
@@ -73,30 +79,103 @@ def skinning_influences(weights, dtype: torch.dtype = torch.float32,
     Results for numpy inputs are cached per array object, dtype and device.
 
     Args:
-        weights: (V,B) numpy array or tensor; or an ``(index, weight)`` pair, returned as is
-            (cast to ``dtype``/``device``).
+        weights: (V,B) numpy array or tensor.
         dtype, device: of the returned weights.
     Returns:
         ``(index (V,K) int64, weight (V,K))``, sorted by decreasing weight per vertex; slot 0
         is the vertex's largest influence; padding has weight 0.
     """
     device = torch.device(device)
-    if isinstance(weights, tuple):
-        index, weight = weights
-        return torch.as_tensor(index, device=device), torch.as_tensor(weight, device=device).to(dtype)
     if isinstance(weights, np.ndarray):
         per_array = _array_cache(weights)
-        key = (dtype, device)
+        key = ("influences", dtype, device)
         if key not in per_array:
             per_array[key] = _influences_from_dense(torch.as_tensor(weights, dtype=dtype, device=device))
         return per_array[key]
     return _influences_from_dense(torch.as_tensor(weights).to(dtype=dtype, device=device))
 
 
+@dataclass(frozen=True)
+class _SkinPlan:
+    """Sparse blending matrices for constant skinning weights."""
+
+    lbs: torch.Tensor  # (V,B) sparse COO
+    pair_main: torch.Tensor  # (P,) main bone of each (main, bone) pair
+    pair_bone: torch.Tensor  # (P,) bone of each pair
+    dqs: torch.Tensor  # (V,P) sparse COO
+
+
+def _build_plan(weights: torch.Tensor) -> _SkinPlan:
+    index, weight = _influences_from_dense(weights)
+    V, K = index.shape
+    B = weights.shape[1]
+    rows = torch.arange(V, device=index.device).repeat_interleave(K)
+    keep = weight.reshape(-1) != 0
+    rows, bones, vals = rows[keep], index.reshape(-1)[keep], weight.reshape(-1)[keep]
+    mains = index[:, 0].repeat_interleave(K)[keep]
+    pairs, pair_col = torch.unique(mains * B + bones, return_inverse=True)
+
+    def sparse(cols: torch.Tensor, ncols: int) -> torch.Tensor:
+        return torch.sparse_coo_tensor(torch.stack([rows, cols]), vals, (V, ncols), check_invariants=True).coalesce()
+
+    return _SkinPlan(lbs=sparse(bones, B), pair_main=pairs // B, pair_bone=pairs % B, dqs=sparse(pair_col, len(pairs)))
+
+
+def _skin_plan(weights, dtype: torch.dtype, device: torch.device) -> _SkinPlan | None:
+    """The sparse plan for constant weights (cached for numpy), None for weights requiring grad."""
+    if isinstance(weights, np.ndarray):
+        per_array = _array_cache(weights)
+        key = ("plan", dtype, device)
+        if key not in per_array:
+            per_array[key] = _build_plan(torch.as_tensor(weights, dtype=dtype, device=device))
+        return per_array[key]
+    weights = torch.as_tensor(weights)
+    if weights.requires_grad:
+        return None
+    return _build_plan(weights.to(dtype=dtype, device=device))
+
+
+def sparse_blend(matrix: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
+    """Rows of a sparse (M,N) matrix applied to per-item values: ``out_m = sum_n A_mn values_n``.
+
+    The leading batch dimensions of ``values`` go into the columns of one sparse matmul.
+
+    Args:
+        matrix: (M,N) sparse COO tensor.
+        values: (...,N,C).
+    Returns:
+        (...,M,C).
+    """
+    batch, (N, C) = values.shape[:-2], values.shape[-2:]
+    M = matrix.shape[0]
+    X = values.reshape(-1, N, C).permute(1, 0, 2).reshape(N, -1)
+    Y = torch.sparse.mm(matrix, X)
+    return Y.reshape(M, -1, C).permute(1, 0, 2).reshape(batch + (M, C))
+
+
 def _gather_influences(values: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
     """(...,B,C) per-bone values -> (...,V,K,C) per-vertex-influence values."""
     V, K = index.shape
     return values.index_select(-2, index.reshape(-1)).unflatten(-2, (V, K))
+
+
+def append_homogeneous_row(top: torch.Tensor) -> torch.Tensor:
+    """(...,3,4) -> (...,4,4) with the homogeneous row (0, 0, 0, 1)."""
+    bottom = torch.zeros(top.shape[:-2] + (1, 4), dtype=top.dtype, device=top.device)
+    bottom[..., 0, 3] = 1.0
+    return torch.cat([top, bottom], -2)
+
+
+def _blend_linear_top(bone_T: torch.Tensor, weights) -> torch.Tensor:
+    """(...,B,4,4) -> (...,V,3,4): the top rows of the LBS-blended transforms."""
+    top = bone_T[..., :3, :].flatten(-2)  # (...,B,12)
+    plan = _skin_plan(weights, bone_T.dtype, bone_T.device)
+    if plan is not None:
+        blended = sparse_blend(plan.lbs, top)
+    else:
+        index, weight = skinning_influences(weights, bone_T.dtype, bone_T.device)
+        blended = torch.einsum("...vkc,vk->...vc", _gather_influences(top, index), weight)
+    return blended.unflatten(-1, (3, 4))
 
 
 def blend_linear(bone_T: torch.Tensor, weights) -> torch.Tensor:
@@ -108,13 +187,7 @@ def blend_linear(bone_T: torch.Tensor, weights) -> torch.Tensor:
     Returns:
         (...,V,4,4) blended affine transforms (not rigid in general).
     """
-    index, weight = skinning_influences(weights, bone_T.dtype, bone_T.device)
-    top = bone_T[..., :3, :].flatten(-2)  # (...,B,12)
-    blended = torch.einsum("...vkc,vk->...vc", _gather_influences(top, index), weight)
-    blended = blended.unflatten(-1, (3, 4))
-    bottom = torch.zeros(blended.shape[:-2] + (1, 4), dtype=blended.dtype, device=blended.device)
-    bottom[..., 0, 3] = 1.0
-    return torch.cat([blended, bottom], -2)
+    return append_homogeneous_row(_blend_linear_top(bone_T, weights))
 
 
 def blend_dual_quaternions(bone_T: torch.Tensor, weights) -> tuple[torch.Tensor, torch.Tensor]:
@@ -144,11 +217,17 @@ def dual_quaternion_blend(real: torch.Tensor, dual: torch.Tensor, weights) -> tu
     Returns:
         ``(real, dual)`` (...,V,4) unit dual quaternions.
     """
-    index, weight = skinning_influences(weights, real.dtype, real.device)
-    dq = _gather_influences(torch.cat([real, dual], -1), index)  # (...,V,K,8)
-    main = dq[..., :1, :4]
-    sign = torch.where((dq[..., :4] * main).sum(-1) < 0, -1.0, 1.0).to(dq.dtype)  # (...,V,K)
-    blended = ((weight * sign)[..., None] * dq).sum(-2)  # (...,V,8)
+    dq = torch.cat([real, dual], -1)  # (...,B,8)
+    plan = _skin_plan(weights, real.dtype, real.device)
+    if plan is not None:
+        bone = dq.index_select(-2, plan.pair_bone)  # (...,P,8)
+        dots = (real.index_select(-2, plan.pair_main) * bone[..., :4]).sum(-1, keepdim=True)
+        blended = sparse_blend(plan.dqs, torch.where(dots < 0, -bone, bone))
+    else:
+        index, weight = skinning_influences(weights, real.dtype, real.device)
+        dq = _gather_influences(dq, index)  # (...,V,K,8)
+        dots = torch.einsum("...vkc,...vc->...vk", dq[..., :4], dq[..., 0, :4])  # vs. the main influence
+        blended = torch.einsum("...vk,...vkc->...vc", torch.where(dots < 0, -weight, weight), dq)
     return dual_quaternion_normalize(blended[..., :4], blended[..., 4:])
 
 
@@ -180,7 +259,7 @@ def linear_blend_skinning(points: torch.Tensor, bone_T: torch.Tensor, weights) -
     Returns:
         (...,V,3) posed positions, metres.
     """
-    return transform_points(blend_linear(bone_T, weights), points)
+    return transform_points(_blend_linear_top(bone_T, weights), points)
 
 
 def dual_quaternion_skinning(points: torch.Tensor, bone_T: torch.Tensor, weights) -> torch.Tensor:
