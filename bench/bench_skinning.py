@@ -18,10 +18,16 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from egorelight_cli.geometry.embedded_graph import embedded_deformation, pose_through_graph
+from egorelight_cli.geometry.embedded_graph import (
+    embedded_deformation,
+    pose_through_graph,
+)
 from egorelight_cli.geometry.rotations import rigid_inverse
 from egorelight_cli.geometry.skeleton import bone_transforms, forward_kinematics
-from egorelight_cli.geometry.skinning import dual_quaternion_skinning, linear_blend_skinning
+from egorelight_cli.geometry.skinning import (
+    dual_quaternion_skinning,
+    linear_blend_skinning,
+)
 from egorelight_cli.structures.character import Character
 from egorelight_cli.structures.skeleton import REVOLUTE, Skeleton
 

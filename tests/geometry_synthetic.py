@@ -14,7 +14,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from egorelight_cli.geometry.embedded_graph import build_embedded_graph, choose_graph_nodes
+from egorelight_cli.geometry.embedded_graph import (
+    build_embedded_graph,
+    choose_graph_nodes,
+)
 from egorelight_cli.structures.character import Character
 from egorelight_cli.structures.skeleton import PRISMATIC, REVOLUTE, Skeleton
 

@@ -4,13 +4,16 @@ from __future__ import annotations
 
 import math
 
+import geometry_synthetic as synth
 import numpy as np
 import pytest
 import torch
 
-from egorelight_cli.geometry.normals import face_area_normals, face_normals, vertex_normals
-
-import geometry_synthetic as synth
+from egorelight_cli.geometry.normals import (
+    face_area_normals,
+    face_normals,
+    vertex_normals,
+)
 
 
 def cube() -> tuple[torch.Tensor, np.ndarray]:

@@ -15,7 +15,7 @@ DTYPES = [torch.float32, torch.float64]
 
 
 def _tol(dtype):
-    return dict(atol=1e-5, rtol=1e-5) if dtype == torch.float32 else dict(atol=1e-12, rtol=1e-12)
+    return {"atol": 1e-5, "rtol": 1e-5} if dtype == torch.float32 else {"atol": 1e-12, "rtol": 1e-12}
 
 
 def _random_axis_angle(n, seed=0, scale=2.0):

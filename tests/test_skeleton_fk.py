@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import geometry_synthetic as synth
 import numpy as np
 import pytest
 import torch
@@ -17,8 +18,6 @@ from egorelight_cli.geometry.skeleton import (
     keypoint_positions,
 )
 from egorelight_cli.structures.skeleton import PRISMATIC, REVOLUTE, Skeleton
-
-import geometry_synthetic as synth
 
 
 def three_joint_chain() -> Skeleton:
@@ -60,7 +59,7 @@ def test_three_joint_chain_by_hand(dtype):
     # j2: + Rz(90) (0, 0, 3) -> origin (-1, 0.5, 3), rotation Rz(90) Rx(45)
     expected_origins = torch.tensor([[1.0, 0, 0], [-1.0, 0.5, 0], [-1.0, 0.5, 3.0]], dtype=dtype)
     expected_R = torch.as_tensor(np.stack([Rz(math.pi / 2), Rz(math.pi / 2), Rz(math.pi / 2) @ Rx(math.pi / 4)]), dtype=dtype)
-    tol = dict(atol=1e-6, rtol=1e-6)
+    tol = {"atol": 1e-6, "rtol": 1e-6}
     torch.testing.assert_close(G[:, :3, 3], expected_origins, **tol)
     torch.testing.assert_close(G[:, :3, :3], expected_R, **tol)
     torch.testing.assert_close(G[:, 3], torch.tensor([0.0, 0, 0, 1], dtype=dtype).expand(3, 4))

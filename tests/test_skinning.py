@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import geometry_synthetic as synth
 import numpy as np
 import pytest
 import torch
@@ -23,8 +24,6 @@ from egorelight_cli.geometry.skinning import (
     skinning_influences,
     skinning_transforms,
 )
-
-import geometry_synthetic as synth
 
 
 def random_rigid(n, seed, dtype=torch.float64, batch=()):
@@ -50,7 +49,7 @@ def test_single_bone_vertices_dqs_equals_lbs_equals_rigid(dtype):
     W = np.eye(4)[bones]  # one-hot
     points = torch.randn(6, 3, dtype=dtype)
     expected = rot.transform_points(T[:, bones], points)
-    tol = dict(atol=1e-5, rtol=1e-5) if dtype == torch.float32 else {}
+    tol = {"atol": 1e-5, "rtol": 1e-5} if dtype == torch.float32 else {}
     torch.testing.assert_close(dual_quaternion_skinning(points, T, W), expected, **tol)
     torch.testing.assert_close(linear_blend_skinning(points, T, W), expected, **tol)
 
@@ -78,7 +77,7 @@ def test_twist_dqs_keeps_radius_lbs_collapses():
     # DQS rotates the ring by 45 degrees instead, keeping its radius
     assert dqs_min == pytest.approx(0.1, rel=1e-9) and dqs_max == pytest.approx(0.1, rel=1e-9)
     # the candy-wrapper: at 180 degrees LBS collapses the ring to the axis
-    lbs_min_180, lbs_max_180 = _twist_cross_section("lbs", math.pi * 0.999)
+    _, lbs_max_180 = _twist_cross_section("lbs", math.pi * 0.999)
     assert lbs_max_180 < 0.01 * 0.1 + 1e-9
     assert _twist_cross_section("dqs", math.pi * 0.999)[0] == pytest.approx(0.1, rel=1e-9)
 
@@ -93,7 +92,7 @@ def test_hemisphere_sign_fix_makes_quaternion_sign_irrelevant():
     # the same transform per vertex (the blended dual quaternion may differ by an overall sign)
     torch.testing.assert_close(rot.rigid_from_dual_quaternion(r0, d0), rot.rigid_from_dual_quaternion(r1, d1))
     # without the fix the naive blend would differ: check that the test case exercises it
-    naive = lambda r, d: rot.rigid_from_dual_quaternion(*[torch.as_tensor(W) @ x for x in (r, d)])  # noqa: E731
+    naive = lambda r, d: rot.rigid_from_dual_quaternion(*[torch.as_tensor(W) @ x for x in (r, d)])
     assert (naive(real, dual) - naive(real * flip, dual * flip)).abs().max() > 1e-2
 
 

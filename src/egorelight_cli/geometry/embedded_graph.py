@@ -22,9 +22,9 @@ import weakref
 
 import numpy as np
 import scipy.sparse as sp
+import torch
 from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
-import torch
 
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.geometry.rotations import euler_to_matrix, transform_points
@@ -154,7 +154,7 @@ def vertex_node_links(hops: np.ndarray, radius: np.ndarray, vertices: np.ndarray
     Returns:
         ``(vertex, node, weight)`` COO arrays of all links.
     """
-    N, V = hops.shape
+    V = hops.shape[1]
     d = hops / radius[:, None]
     linked = d <= 1.0
     lonely = ~linked.any(0)
@@ -293,7 +293,7 @@ def _decimate_nodes(vertices: np.ndarray, faces: np.ndarray, num_nodes: int) -> 
 
     ms = pymeshlab.MeshSet()
     ms.add_mesh(pymeshlab.Mesh(vertex_matrix=vertices, face_matrix=np.asarray(faces, np.int32)))
-    target = max(int(round(num_nodes * len(faces) / max(len(vertices), 1))), 4)
+    target = max(round(num_nodes * len(faces) / max(len(vertices), 1)), 4)
     ms.meshing_decimation_quadric_edge_collapse(targetfacenum=target, preservetopology=True, preserveboundary=True,
                                                 optimalplacement=False, planarquadric=True)
     ms.meshing_remove_unreferenced_vertices()
@@ -340,7 +340,7 @@ def choose_graph_nodes(vertices: np.ndarray, faces: np.ndarray, num_nodes: int,
 # Deformation
 # ----------------------------------------------------------------------------------------------
 
-_SPARSE_CACHE: "weakref.WeakKeyDictionary[EmbeddedGraph, dict]" = weakref.WeakKeyDictionary()
+_SPARSE_CACHE: weakref.WeakKeyDictionary[EmbeddedGraph, dict] = weakref.WeakKeyDictionary()
 
 
 def graph_weight_matrix(graph: EmbeddedGraph, dtype: torch.dtype, device: torch.device | str) -> torch.Tensor:

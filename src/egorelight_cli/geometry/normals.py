@@ -1,15 +1,29 @@
 """Face and vertex normals of triangle meshes (batched, differentiable).
 
 Counter-clockwise triangles (seen from outside) give outward normals:
-``n = (v1 - v0) x (v2 - v0)``.
+``n = (v1 - v0) x (v2 - v0)``. Every function takes torch tensors (and keeps their dtype and
+autograd graph) or numpy arrays (computed in float64, returned as numpy float64).
 """
 
 from __future__ import annotations
+
+import functools
 
 import numpy as np
 import torch
 
 from egorelight_cli.geometry.rotations import cross
+
+
+def _numpy_in_numpy_out(func):
+    """Let a torch function take numpy vertices: float64 in, numpy float64 out."""
+    @functools.wraps(func)
+    def wrapper(vertices, faces, *args, **kwargs):
+        if torch.is_tensor(vertices):
+            return func(vertices, faces, *args, **kwargs)
+        result = func(torch.as_tensor(np.asarray(vertices, dtype=np.float64)), faces, *args, **kwargs)
+        return result.numpy()
+    return wrapper
 
 
 def _faces_tensor(faces, device: torch.device) -> torch.Tensor:
@@ -20,6 +34,7 @@ def _normalize(v: torch.Tensor, eps: float) -> torch.Tensor:
     return v / torch.linalg.vector_norm(v, dim=-1, keepdim=True).clamp_min(eps)
 
 
+@_numpy_in_numpy_out
 def face_area_normals(vertices: torch.Tensor, faces) -> torch.Tensor:
     """Unnormalised face normals, ``(v1 - v0) x (v2 - v0)`` (length = twice the face area).
 
@@ -36,6 +51,7 @@ def face_area_normals(vertices: torch.Tensor, faces) -> torch.Tensor:
     return cross(v1 - v0, v2 - v0)
 
 
+@_numpy_in_numpy_out
 def face_normals(vertices: torch.Tensor, faces, eps: float = 1e-20) -> torch.Tensor:
     """Unit face normals; degenerate faces give zero vectors.
 
@@ -46,9 +62,10 @@ def face_normals(vertices: torch.Tensor, faces, eps: float = 1e-20) -> torch.Ten
     Returns:
         (...,F,3).
     """
-    return _normalize(face_area_normals(vertices, faces), eps)
+    return _normalize(face_area_normals.__wrapped__(vertices, faces), eps)
 
 
+@_numpy_in_numpy_out
 def vertex_normals(vertices: torch.Tensor, faces, eps: float = 1e-20) -> torch.Tensor:
     """Area-weighted unit vertex normals (sum of incident face area normals, normalised).
 
@@ -62,7 +79,7 @@ def vertex_normals(vertices: torch.Tensor, faces, eps: float = 1e-20) -> torch.T
         (...,V,3).
     """
     f = _faces_tensor(faces, vertices.device)
-    fn = face_area_normals(vertices, f)  # (...,F,3)
+    fn = face_area_normals.__wrapped__(vertices, f)  # (...,F,3)
     acc = torch.zeros_like(vertices)
     for corner in range(3):
         acc = acc.index_add(-2, f[:, corner], fn)

@@ -18,7 +18,12 @@ import numpy as np
 import torch
 
 from egorelight_cli.errors import EgorelightError
-from egorelight_cli.geometry.rotations import axis_angle_rotation, make_transform, rigid_inverse, transform_points
+from egorelight_cli.geometry.rotations import (
+    axis_angle_rotation,
+    make_transform,
+    rigid_inverse,
+    transform_points,
+)
 from egorelight_cli.structures.character import Character
 from egorelight_cli.structures.skeleton import PRISMATIC, REVOLUTE, Skeleton
 
@@ -32,7 +37,7 @@ class _SkeletonTensors:
     is_prismatic: torch.Tensor  # (J,) bool
 
 
-_CACHE: "weakref.WeakKeyDictionary[object, dict]" = weakref.WeakKeyDictionary()
+_CACHE: weakref.WeakKeyDictionary[object, dict] = weakref.WeakKeyDictionary()
 
 
 def _cached(owner: object, key: tuple, build):
@@ -44,7 +49,7 @@ def _cached(owner: object, key: tuple, build):
 
 def _skeleton_tensors(skeleton: Skeleton, dtype: torch.dtype, device: torch.device) -> _SkeletonTensors:
     def build() -> _SkeletonTensors:
-        as_t = lambda a: torch.as_tensor(a, dtype=dtype, device=device)  # noqa: E731
+        as_t = lambda a: torch.as_tensor(a, dtype=dtype, device=device)
         return _SkeletonTensors(
             dof_joint_weights=as_t(skeleton.dof_joint_weights),
             axes=as_t(skeleton.axes),

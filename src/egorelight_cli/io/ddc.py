@@ -41,7 +41,6 @@ where there is one, the line.
 from __future__ import annotations
 
 import hashlib
-import inspect
 import math
 import os
 import shutil
@@ -52,6 +51,7 @@ from pathlib import Path
 import numpy as np
 
 from egorelight_cli.errors import EgorelightError
+from egorelight_cli.geometry.embedded_graph import bind_nodes_to_vertices, build_embedded_graph
 from egorelight_cli.structures.character import Character, EmbeddedGraph
 from egorelight_cli.structures.keypoints import KEYPOINT_NAMES
 from egorelight_cli.structures.skeleton import JOINT_TYPE_NAMES, PRISMATIC, REVOLUTE, Skeleton
@@ -67,7 +67,7 @@ __all__ = [
     "CharacterFile", "read_character_file", "write_character_file",
     "ObjMesh", "read_obj", "write_obj",
     "read_labels", "write_labels",
-    "bone_joint_index", "keypoint_joint_index", "bind_graph_nodes", "graph_edges_from_faces",
+    "bone_joint_index", "keypoint_joint_index", "graph_edges_from_faces",
     "read_ddc_character", "write_ddc_character",
 ]
 
@@ -1210,36 +1210,6 @@ def keypoint_joint_index(keypoint: str, joint_names) -> int | None:
     return None
 
 
-def bind_graph_nodes(node_positions: np.ndarray, vertices: np.ndarray) -> np.ndarray:
-    """Bind each graph node, in order, to the closest template vertex not bound yet (greedy).
-
-    Returns:
-        (N,) int64 template vertex index per node.
-    """
-    from scipy.spatial import cKDTree
-
-    node_positions = np.asarray(node_positions, dtype=np.float64)
-    N, V = len(node_positions), len(vertices)
-    if N > V:
-        raise EgorelightError(f"the embedded graph has {N} nodes but the template only {V} vertices")
-    tree = cKDTree(vertices)
-    used = np.zeros(V, dtype=bool)
-    result = np.empty(N, dtype=np.int64)
-    k0 = min(V, 16)
-    _, candidates = tree.query(node_positions, k=k0)
-    candidates = np.asarray(candidates).reshape(N, k0)
-    for n in range(N):
-        row = candidates[n]
-        free = row[~used[row]]
-        if free.size == 0:
-            _, row = tree.query(node_positions[n], k=V)
-            row = np.atleast_1d(row)
-            free = row[~used[row]]
-        result[n] = free[0]
-        used[free[0]] = True
-    return result
-
-
 def graph_edges_from_faces(faces: np.ndarray) -> np.ndarray:
     """Unique undirected edges ``(i, j)``, ``i < j``, of a triangle list, sorted."""
     faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
@@ -1367,14 +1337,10 @@ def read_ddc_character(
     if not gpath.is_file():
         raise EgorelightError("the embedded graph OBJ of the character does not exist", gpath)
     gmesh = read_obj(gpath, "embedded graph OBJ")
-    node_vertex = bind_graph_nodes(gmesh.vertices, mesh.vertices)
+    node_vertex = bind_nodes_to_vertices(gmesh.vertices, mesh.vertices)
     node_edges = graph_edges_from_faces(gmesh.faces)
-    from egorelight_cli.geometry.embedded_graph import build_embedded_graph  # lazy: built in parallel
 
-    kwargs = {}
-    if "vertices" in inspect.signature(build_embedded_graph).parameters:  # optional extension
-        kwargs["vertices"] = vertices
-    graph = build_embedded_graph(mesh.faces, V, node_vertex, node_edges, gmesh.faces, **kwargs)
+    graph = build_embedded_graph(mesh.faces, V, node_vertex, node_edges, gmesh.faces, vertices=vertices)
     if graph.faces.shape[0] == 0 and len(gmesh.faces):
         graph = EmbeddedGraph(graph.node_vertex, graph.node_radius, graph.edges, graph.vertex_node_index,
                               graph.vertex_node_weight, gmesh.faces)

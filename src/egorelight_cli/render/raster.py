@@ -25,6 +25,7 @@ import numpy as np
 
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.geometry.cameras import Camera, camera_rays_world
+from egorelight_cli.geometry.normals import face_normals, vertex_normals
 from egorelight_cli.geometry.raycast import RayCaster
 
 # Most candidate texels tested in one broadcast block of UV rasterisation (bounds memory).
@@ -39,27 +40,6 @@ _CONSERVATIVE_SEARCH_RADIUS = 8
 # --------------------------------------------------------------------------------------------
 # Mesh attributes
 # --------------------------------------------------------------------------------------------
-
-
-def face_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """(F,3) unit geometric normals (right-hand rule on the face's vertex order); 0 for degenerate faces."""
-    tri = np.asarray(vertices, dtype=np.float64)[faces]
-    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    return _normalize(cross)
-
-
-def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """(V,3) unit vertex normals: area-weighted average of the incident faces' normals."""
-    vertices = np.asarray(vertices, dtype=np.float64)
-    tri = vertices[faces]
-    area_weighted = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # |.| = 2 * area
-    corner_vertex = np.asarray(faces).reshape(-1)
-    sums = np.stack(
-        [np.bincount(corner_vertex, weights=np.repeat(area_weighted[:, k], 3), minlength=len(vertices))
-         for k in range(3)],
-        axis=-1,
-    )
-    return _normalize(sums)
 
 
 def _normalize(vectors: np.ndarray) -> np.ndarray:

