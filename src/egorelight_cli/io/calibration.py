@@ -1,0 +1,188 @@
+"""The ``calibration`` artifact payload: hand-eye transforms, head poses and stream offsets.
+
+A calibration artifact directory holds
+
+* ``calibration.json``: per ego camera (keyed by role: ``down_left``, ``down_right``,
+  ``front_left``, ``front_right``) its hand-eye transform ``T_cam_from_hmd`` (4x4, metres) and
+  residuals; per sequence the stream offset and how its head poses were obtained;
+* ``head_poses/<sequence>.npz``: ``T_world_from_hmd`` (T,4,4) float64, ``frame_ids`` (T,)
+  int64, ``valid`` (T,) bool (False = too little evidence: flagged, never invented),
+  ``num_markers`` (T,) int64 and ``residual_px`` (T,) float64 (NaN where invalid).
+
+**Frame ids.** Every per-frame artifact of this tool (head poses, keypoints, motion, point
+clouds, meshes, ...) is indexed by the capture's master clock, the studio frame ids of
+``sequence.json``. An ego image of frame ``f`` is ``ego/<role>/<f + stream_offset>.png``, with
+``stream_offset`` from this artifact (found from the light flashes). Sequences without a studio
+stream (``wild``) use the ego frame ids and offset 0.
+
+The unprojection of the paper, ``z = (K Pi H)^-1 d``, is ``T_world_from_cam = H @ inv(Pi)`` with
+``H = T_world_from_hmd`` and ``Pi = T_cam_from_hmd`` (:meth:`Calibration.T_world_from_cam`).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from egorelight_cli.errors import EgorelightError
+from egorelight_cli.io.npz import read_npz, write_npz
+
+CALIBRATION_JSON = "calibration.json"
+HEAD_POSES_DIR = "head_poses"
+HEAD_POSES_KIND = "egorelight/calibration"  # the npz payloads carry the artifact's kind
+VERSION = 1
+
+
+@dataclass(frozen=True)
+class HeadPoses:
+    """Per-frame HMD poses of one sequence.
+
+    Attributes:
+        T_world_from_hmd: (T,4,4) float64, metres.
+        frame_ids: (T,) int64 master-clock frame ids.
+        valid: (T,) bool.
+        num_markers: (T,) int64 markers (or features) that supported each pose.
+        residual_px: (T,) float64 reprojection residual, NaN where invalid.
+    """
+
+    T_world_from_hmd: np.ndarray
+    frame_ids: np.ndarray
+    valid: np.ndarray
+    num_markers: np.ndarray
+    residual_px: np.ndarray
+
+    def __post_init__(self) -> None:
+        T = len(self.frame_ids)
+        if np.shape(self.T_world_from_hmd) != (T, 4, 4):
+            raise EgorelightError(f"head poses have shape {np.shape(self.T_world_from_hmd)}, expected ({T},4,4)")
+        for name in ("valid", "num_markers", "residual_px"):
+            if np.shape(getattr(self, name)) != (T,):
+                raise EgorelightError(f"head pose field {name} has shape {np.shape(getattr(self, name))}, expected ({T},)")
+
+    def pose(self, frame_id: int) -> np.ndarray:
+        """T_world_from_hmd of one frame; an error for unknown or flagged frames."""
+        index = np.nonzero(self.frame_ids == frame_id)[0]
+        if index.size == 0:
+            raise EgorelightError(f"frame {frame_id} has no head pose (frames {self.frame_ids.min()}..{self.frame_ids.max()})")
+        if not self.valid[index[0]]:
+            raise EgorelightError(f"frame {frame_id} was flagged by calibration (too little evidence for a head pose)")
+        return self.T_world_from_hmd[index[0]]
+
+
+@dataclass(frozen=True)
+class EgoCameraCalibration:
+    """Hand-eye result for one ego camera."""
+
+    role: str
+    name: str
+    T_cam_from_hmd: np.ndarray
+    residual_px: float = float("nan")
+    residual_mm: float = float("nan")
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """Everything the egocentric stages need to put ego observations into the world."""
+
+    ego_cameras: dict[str, EgoCameraCalibration]
+    stream_offsets: dict[str, int]
+    head_poses: dict[str, HeadPoses] = field(default_factory=dict)
+    extras: dict = field(default_factory=dict)
+
+    def T_world_from_cam(self, role: str, sequence: str, frame_id: int) -> np.ndarray:
+        """``H @ inv(Pi)`` for an ego camera at a master-clock frame."""
+        if role not in self.ego_cameras:
+            raise EgorelightError(f"calibration has no ego camera {role!r} (has {', '.join(self.ego_cameras)})")
+        if sequence not in self.head_poses:
+            raise EgorelightError(f"calibration has no head poses for sequence {sequence!r}")
+        H = self.head_poses[sequence].pose(frame_id)
+        return H @ np.linalg.inv(self.ego_cameras[role].T_cam_from_hmd)
+
+    def ego_frame_id(self, sequence: str, frame_id: int) -> int:
+        """The ego-stream frame id that shows master-clock frame ``frame_id``."""
+        if sequence not in self.stream_offsets:
+            raise EgorelightError(f"calibration has no stream offset for sequence {sequence!r}")
+        return int(frame_id) + int(self.stream_offsets[sequence])
+
+
+def write_calibration(root: str | Path, calibration: Calibration) -> list[Path]:
+    """Write the payload files into directory ``root`` (an ArtifactWriter's work dir)."""
+    root = Path(root)
+    doc = {
+        "version": VERSION,
+        "ego_cameras": {
+            role: {"name": cam.name, "T_cam_from_hmd": np.asarray(cam.T_cam_from_hmd, float).tolist(),
+                   "residual_px": _num(cam.residual_px), "residual_mm": _num(cam.residual_mm)}
+            for role, cam in calibration.ego_cameras.items()
+        },
+        "stream_offsets": {seq: int(off) for seq, off in calibration.stream_offsets.items()},
+        "head_pose_sequences": sorted(calibration.head_poses),
+        "extras": calibration.extras,
+    }
+    (root / CALIBRATION_JSON).write_text(json.dumps(doc, indent=2, sort_keys=True) + "\n")
+    written = [root / CALIBRATION_JSON]
+    (root / HEAD_POSES_DIR).mkdir(parents=True, exist_ok=True)
+    for seq, poses in calibration.head_poses.items():
+        path = root / HEAD_POSES_DIR / f"{seq}.npz"
+        write_npz(path, {
+            "T_world_from_hmd": np.asarray(poses.T_world_from_hmd, np.float64),
+            "frame_ids": np.asarray(poses.frame_ids, np.int64),
+            "valid": np.asarray(poses.valid, bool),
+            "num_markers": np.asarray(poses.num_markers, np.int64),
+            "residual_px": np.asarray(poses.residual_px, np.float64),
+        }, {"kind": HEAD_POSES_KIND, "version": VERSION, "sequence": seq, "units": {"T_world_from_hmd": "m"},
+            "frame_ids": [int(f) for f in poses.frame_ids]})
+        written.append(path)
+    return written
+
+
+def _num(value: float) -> float | None:
+    value = float(value)
+    return value if np.isfinite(value) else None
+
+
+def read_calibration(root: str | Path) -> Calibration:
+    """Read the payload of a calibration artifact directory."""
+    root = Path(root)
+    path = root / CALIBRATION_JSON
+    if not path.is_file():
+        raise EgorelightError("calibration payload not found", path)
+    try:
+        doc = json.loads(path.read_text())
+        cameras = {
+            role: EgoCameraCalibration(role=role, name=entry["name"],
+                                       T_cam_from_hmd=_rigid(entry["T_cam_from_hmd"], path, role),
+                                       residual_px=_nan(entry.get("residual_px")),
+                                       residual_mm=_nan(entry.get("residual_mm")))
+            for role, entry in doc["ego_cameras"].items()
+        }
+        offsets = {seq: int(off) for seq, off in doc["stream_offsets"].items()}
+        sequences = list(doc.get("head_pose_sequences", []))
+    except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
+        raise EgorelightError(f"malformed calibration ({type(exc).__name__}: {exc})", path) from None
+    head_poses = {}
+    for seq in sequences:
+        npz = root / HEAD_POSES_DIR / f"{seq}.npz"
+        arrays, _ = read_npz(npz, check_finite=False)
+        if not np.all(np.isfinite(arrays["T_world_from_hmd"][arrays["valid"]])):
+            raise EgorelightError("valid head poses hold NaN/inf", npz)
+        head_poses[seq] = HeadPoses(**{k: arrays[k] for k in
+                                       ("T_world_from_hmd", "frame_ids", "valid", "num_markers", "residual_px")})
+    return Calibration(ego_cameras=cameras, stream_offsets=offsets, head_poses=head_poses, extras=doc.get("extras", {}))
+
+
+def _nan(value) -> float:
+    return float("nan") if value is None else float(value)
+
+
+def _rigid(values, path: Path, role: str) -> np.ndarray:
+    T = np.asarray(values, dtype=np.float64)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise EgorelightError(f"T_cam_from_hmd of {role} is not a finite 4x4 matrix", path)
+    R = T[:3, :3]
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or not np.allclose(T[3], [0, 0, 0, 1]):
+        raise EgorelightError(f"T_cam_from_hmd of {role} is not a rigid transform", path)
+    return T
