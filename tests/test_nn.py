@@ -1,0 +1,107 @@
+"""Shared learning blocks: U-Net, UV feature sampling, colour jitter, training loop, model payload."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from egorelight_cli.errors import EgorelightError
+from egorelight_cli.io.model import ModelPayload, read_model, write_model
+from egorelight_cli.nn.augment import ColourJitter, apply_colour_jitter
+from egorelight_cli.nn.training import train
+from egorelight_cli.nn.unet import UNet, sample_feature_map
+
+
+def test_unet_shapes_any_size_and_gradients():
+    net = UNet(5, 3, base_channels=8, levels=3)
+    x = torch.randn(2, 5, 37, 50, requires_grad=True)
+    y = net(x)
+    assert y.shape == (2, 3, 37, 50)
+    feats = net.decoder_features(x)
+    assert [f.shape[-2:] for f in feats] == [(5, 7), (10, 13), (19, 25), (37, 50)]
+    y.square().mean().backward()
+    assert x.grad is not None and all(p.grad is not None for p in net.parameters())
+
+
+def test_sample_feature_map_hits_texel_centres():
+    H, W = 4, 6
+    features = torch.arange(H * W, dtype=torch.float64).reshape(1, 1, H, W)
+    rows, cols = np.meshgrid(np.arange(H), np.arange(W), indexing="ij")
+    u = (cols + 0.5) / W
+    v = 1 - (rows + 0.5) / H  # row 0 is v = 1
+    uv = torch.as_tensor(np.stack([u.ravel(), v.ravel()], -1))
+    sampled = sample_feature_map(features, uv)
+    np.testing.assert_allclose(sampled[0, :, 0].numpy(), np.arange(H * W), atol=1e-9)
+
+
+def test_colour_jitter_identity_and_properties():
+    g = torch.Generator().manual_seed(0)
+    images = torch.rand(3, 3, 8, 8, generator=g)
+    identity = torch.tensor([[1.0, 1.0, 1.0, 0.0]]).repeat(3, 1)
+    torch.testing.assert_close(apply_colour_jitter(images, identity), images, atol=1e-5, rtol=0)
+    full_turn = identity.clone()
+    full_turn[:, 3] = 2 * math.pi
+    torch.testing.assert_close(apply_colour_jitter(images, full_turn), images, atol=1e-5, rtol=0)
+    grey = torch.full((1, 3, 4, 4), 0.4)
+    hue_only = torch.tensor([[1.0, 1.0, 1.0, 1.3]])
+    torch.testing.assert_close(apply_colour_jitter(grey, hue_only), grey, atol=1e-5, rtol=0)
+    darker = torch.tensor([[0.5, 1.0, 1.0, 0.0]])
+    torch.testing.assert_close(apply_colour_jitter(grey, darker), grey * 0.5, atol=1e-5, rtol=0)
+    out = ColourJitter(0.8, 0.8, 0.8, 0.5)(images, generator=g)
+    assert out.min() >= 0 and out.max() <= 1 and not torch.allclose(out, images)
+
+
+def _regression_problem():
+    torch.manual_seed(0)
+    model = torch.nn.Linear(3, 1)
+    optimizer = torch.optim.SGD(model.parameters(), lr=0.1)
+    w_true = torch.tensor([[1.0, -2.0, 0.5]])
+
+    def step_fn(step):
+        g = torch.Generator().manual_seed(step)
+        x = torch.randn(32, 3, generator=g)
+        return {"loss": (model(x) - x @ w_true.T).square().mean()}
+    return model, optimizer, step_fn
+
+
+def test_training_converges_and_resume_matches_uninterrupted(tmp_path):
+    model, optimizer, step_fn = _regression_problem()
+    curve = train(model, optimizer, step_fn, 60, log_every=10)
+    assert curve[-1]["loss"] < 1e-3 * curve[0]["loss"] and len(curve) == 6
+    reference = [p.detach().clone() for p in model.parameters()]
+
+    model, optimizer, step_fn = _regression_problem()
+    ckpt = tmp_path / "ckpt.pt"
+    train(model, optimizer, step_fn, 30, checkpoint=ckpt, checkpoint_every=10, log_every=10)
+    model, optimizer, step_fn = _regression_problem()   # a fresh process resumes
+    curve = train(model, optimizer, step_fn, 60, checkpoint=ckpt, checkpoint_every=10, log_every=10)
+    assert [row["step"] for row in curve] == [10, 20, 30, 40, 50, 60]
+    for p, q in zip(model.parameters(), reference):
+        torch.testing.assert_close(p.detach(), q)
+
+
+def test_training_stops_on_nan():
+    model = torch.nn.Linear(1, 1)
+    optimizer = torch.optim.SGD(model.parameters(), lr=0.1)
+    with pytest.raises(EgorelightError, match="loss became nan"):
+        train(model, optimizer, lambda s: {"loss": model(torch.ones(1, 1)).sum() * float("nan")}, 5)
+
+
+def test_model_payload_round_trip_and_errors(tmp_path):
+    net = UNet(3, 1, base_channels=4, levels=2)
+    payload = ModelPayload("egodepth", {"base_channels": 4, "levels": 2}, net.state_dict(),
+                           extra={"depth_scale": 2.0}, curve=[{"step": 10, "loss": 1.0}, {"step": 20, "loss": 0.5}])
+    write_model(tmp_path, payload)
+    back = read_model(tmp_path, stage="egodepth")
+    assert back.architecture == {"base_channels": 4, "levels": 2} and back.extra["depth_scale"] == 2.0
+    for name, value in net.state_dict().items():
+        torch.testing.assert_close(back.state_dict[name], value)
+    assert (tmp_path / "curve.png").stat().st_size > 0 and back.curve[-1]["loss"] == 0.5
+    with pytest.raises(EgorelightError, match="trained for stage 'egodepth', not 'egopose'"):
+        read_model(tmp_path, stage="egopose")
+    (tmp_path / "model.pt").write_bytes(b"garbage")
+    with pytest.raises(EgorelightError, match="cannot load model"):
+        read_model(tmp_path)
