@@ -132,7 +132,7 @@ def rotate_envmap(envmap: np.ndarray, yaw_deg: float) -> np.ndarray:
     Sign: content seen in direction ``d`` before is seen in direction ``R_y(yaw) d`` after, i.e.
     a feature at azimuth ``phi`` moves to ``phi - yaw`` (towards smaller column indices; a sun
     in -Z at yaw 0 is in -X at yaw 90). Formally ``E'(d) = E(R_y(yaw)^T d)``. Whole-column
-    shifts are exact; fractional shifts interpolate linearly along the rows.
+    shifts are exact; fractional shifts interpolate linearly in azimuth.
 
     Returns:
         (H,W,C) rotated map, same dtype.
@@ -140,7 +140,7 @@ def rotate_envmap(envmap: np.ndarray, yaw_deg: float) -> np.ndarray:
     envmap = check_envmap(envmap)
     width = envmap.shape[1]
     shift = (float(yaw_deg) / 360.0 * width) % width  # E'[:, j] = E[:, j + shift]
-    whole = int(math.floor(shift))
+    whole = math.floor(shift)
     frac = shift - whole
     rolled = np.roll(envmap, -whole, axis=1)
     if frac < 1e-9:

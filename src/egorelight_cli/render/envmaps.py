@@ -34,7 +34,11 @@ import cv2
 import numpy as np
 
 from egorelight_cli.errors import EgorelightError
-from egorelight_cli.geometry.equirect import check_envmap, equirect_directions, equirect_solid_angles
+from egorelight_cli.geometry.equirect import (
+    check_envmap,
+    equirect_directions,
+    equirect_solid_angles,
+)
 
 ENVMAP_KINDS = ("sky", "indoor", "studio")
 PURPOSES = ("train", "test", "wild")

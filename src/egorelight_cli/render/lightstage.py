@@ -35,9 +35,10 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 from scipy.spatial import SphericalVoronoi, cKDTree
@@ -151,7 +152,7 @@ class LightStage:
     @classmethod
     def dome(cls, num_lights: int = DEFAULT_NUM_LIGHTS, radius: float = DEFAULT_RADIUS,
              min_elevation_deg: float = DEFAULT_MIN_ELEVATION_DEG, centre=DEFAULT_CENTRE,
-             rgb_gain=None) -> "LightStage":
+             rgb_gain=None) -> LightStage:
         """The default simulated lightstage: :func:`dome_positions` with unit (or given) gains."""
         positions = dome_positions(num_lights, radius, min_elevation_deg, centre)
         gain = np.ones_like(positions) if rgb_gain is None else np.broadcast_to(rgb_gain, positions.shape)
@@ -171,7 +172,7 @@ class LightStage:
         }
 
     @classmethod
-    def from_json(cls, data: Mapping[str, Any] | str | Path) -> "LightStage":
+    def from_json(cls, data: Mapping[str, Any] | str | Path) -> LightStage:
         """From a :meth:`to_json` dict or a ``lights.json`` path; centre/radius fitted when absent."""
         path = None
         if isinstance(data, (str, Path)):
@@ -207,7 +208,7 @@ class LightStage:
 
     @property
     def num_lights(self) -> int:
-        return int(len(self.positions))
+        return len(self.positions)
 
     @property
     def directions(self) -> np.ndarray:

@@ -10,18 +10,20 @@ camera), under a lighting condition ``I`` (L,3) reflects the radiance
 with ``w_l`` the unit direction to light ``l`` and ``V_l`` its binary visibility (a shadow ray:
 self-occlusion of the mesh). The BRDF is Lambert plus a normalised Blinn-Phong lobe:
 
-    f = albedo / pi  +  ks * (s + 8) / (8 pi) * max(0, n . h)^s,    h = (w_l + v) / |w_l + v|,
+    f = albedo / pi  +  ks * c(s) * max(0, n . h)^s,    h = (w_l + v) / |w_l + v|,
+    c(s) = (s + 2) (s + 4) / (8 pi (2^(-s/2) + s)),
 
 ``albedo`` (3,) the diffuse reflectance (linear RGB in [0,1]), ``ks`` the specular albedo (grey
 or RGB) and ``s`` the Blinn-Phong exponent from a roughness ``r`` in (0, 1]: ``alpha = r^2``,
 ``s = 2 / alpha^2 - 2`` (Walter et al.'s Beckmann-equivalent mapping, clamped to [1, 10^4]). The
-``(s + 8) / (8 pi)`` factor normalises the cosine-weighted lobe to about one, so the material is
+factor ``c(s)`` (Giesen's exact Blinn-Phong normalisation; ~(s + 8) / (8 pi) for large s) makes the
+cosine-weighted lobe integrate to at most one (one at normal incidence), so the material is
 energy-conserving when ``albedo + ks <= 1`` per channel. Everything is linear in ``I`` (no
 clamping), in float32, with no interreflections.
 
 Visibility. :func:`light_visibility` casts one shadow ray per (point, light) pair from the
-point offset by ``eps`` along its normal towards the light's side, with ``max_dist`` the distance
-to the light (Embree any-hit). :func:`render_view` either traces that exactly for every visible
+point offset by ``eps`` along its normal towards the light's side (pixels: the geometric face
+normal; vertices: the vertex normal), with ``max_dist`` the distance to the light (Embree any-hit). :func:`render_view` either traces that exactly for every visible
 pixel and lit light (``vertex_visibility=None``; ~N_pixels x L rays), or reuses a per-vertex
 (V,L) visibility computed once per frame and shared by all cameras
 (:func:`vertex_light_visibility`). Per-vertex visibility interpolated over a face is only
@@ -40,17 +42,25 @@ their UV islands by the producer: bilinear lookups near seams read neighbouring 
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import NamedTuple
 
 import cv2
 import numpy as np
+import torch
 
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.geometry.cameras import Camera
 from egorelight_cli.geometry.raycast import RayCaster
 from egorelight_cli.render.lightstage import LightStage
-from egorelight_cli.render.raster import RasterResult, rasterize, uv_to_texel_coords, vertex_normals
+from egorelight_cli.render.raster import (
+    RasterResult,
+    rasterize,
+    uv_to_texel_coords,
+    vertex_normals,
+)
 
 #: Offset (metres) of shadow-ray origins from the surface, along the normal towards the light.
 SHADOW_EPS = 1e-3
@@ -62,6 +72,22 @@ _CHUNK_PIXELS = 4096
 #: Shadow rays per Embree call in :func:`light_visibility`.
 _CHUNK_RAYS = 1 << 20
 _REMAP_COLUMNS = 1024  # cv2.remap maps must stay below SHRT_MAX rows and columns
+
+
+@contextmanager
+def single_torch_thread() -> Iterator[None]:
+    """Run torch ops (camera unprojection) on one intra-op thread, restoring the setting after.
+
+    The unprojection of a camera's pixel grid takes ~20 ms single-threaded, but with torch's
+    default thread pool on a loaded CPU (other processes, Embree's threads) its many small
+    parallel regions were measured 10-100x slower (up to seconds per view).
+    """
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(previous)
 
 
 # --------------------------------------------------------------------------------------------
@@ -140,29 +166,37 @@ class Material:
 # --------------------------------------------------------------------------------------------
 
 
+def _row_dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise dot products (n,) of (n,3) arrays, element-wise (faster than a reduce over axis 3)."""
+    return a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1] + a[:, 2] * b[:, 2]
+
+
 def _shadow_rays(points: np.ndarray, offset_normals: np.ndarray, light_positions: np.ndarray, eps: float):
-    """Origins (n,3), unit directions (n,3) and distances (n,) of shadow rays, one per row.
+    """Origins (n,3), unit directions (n,3) and distances (n,) of shadow rays, one per row (float32).
 
     The origin is the point moved by ``eps`` along its normal, on the side facing the light.
     """
-    to_light = light_positions - points
-    side = np.where(np.sum(to_light * offset_normals, axis=-1, keepdims=True) < 0, -1.0, 1.0)
-    origins = points + (eps * side) * offset_normals
-    to_light = light_positions - origins
-    distance = np.sqrt(np.sum(to_light * to_light, axis=-1))
-    return origins, to_light / distance[:, None], distance
+    eps = np.float32(eps)
+    side = np.where(_row_dot(light_positions - points, offset_normals) < 0, -eps, eps)
+    origins = points + side[:, None] * offset_normals
+    dirs = light_positions - origins
+    distance = np.sqrt(_row_dot(dirs, dirs))
+    dirs /= distance[:, None]
+    return origins, dirs, distance
 
 
 def _trace_pairs(caster: RayCaster, points: np.ndarray, offset_normals: np.ndarray, light_positions: np.ndarray,
                  point_index: np.ndarray, light_index: np.ndarray, eps: float) -> np.ndarray:
     """Visibility (P,) bool of (point, light) pairs, in chunks of shadow rays."""
+    points = np.asarray(points, dtype=np.float32)
+    offset_normals = np.asarray(offset_normals, dtype=np.float32)
+    light_positions = np.asarray(light_positions, dtype=np.float32)
     visible = np.empty(len(point_index), dtype=bool)
     for start in range(0, len(point_index), _CHUNK_RAYS):
         p = point_index[start:start + _CHUNK_RAYS]
         l = light_index[start:start + _CHUNK_RAYS]
         origins, dirs, distance = _shadow_rays(points[p], offset_normals[p], light_positions[l], eps)
-        visible[start:start + len(p)] = ~caster.occluded(origins.astype(np.float32), dirs.astype(np.float32),
-                                                         max_dist=np.maximum(distance - eps, 2 * eps))
+        visible[start:start + len(p)] = ~caster.occluded(origins, dirs, max_dist=np.maximum(distance - eps, 2 * eps))
     return visible
 
 
@@ -228,16 +262,31 @@ class ShadingComponents(NamedTuple):
 
 
 def _light_geometry(points: np.ndarray, normals: np.ndarray, light_positions: np.ndarray):
-    """Unit directions to the lights (n,La,3), 1/d^2 (n,La) and clamped cosines (n,La), float32.
+    """Unit directions to the lights as components (3 x (n,La)), 1/d^2 (n,La) and clamped cosines (n,La).
 
-    Element-wise numpy only (no BLAS): see the note on OpenBLAS threads in geometry/raycast.py.
+    float32, structure-of-arrays, element-wise numpy only (no BLAS: see the note on OpenBLAS
+    threads in geometry/raycast.py).
     """
-    to_light = light_positions[None].astype(np.float32) - points[:, None].astype(np.float32)
-    inv_d2 = 1.0 / np.sum(to_light * to_light, axis=-1)
-    to_light *= np.sqrt(inv_d2)[..., None]
+    p = points.astype(np.float32)
+    q = light_positions.astype(np.float32)
     n = normals.astype(np.float32)
-    cos = to_light[..., 0] * n[:, None, 0] + to_light[..., 1] * n[:, None, 1] + to_light[..., 2] * n[:, None, 2]
-    return to_light, inv_d2, np.maximum(cos, 0.0)
+    dirs = [q[None, :, k] - p[:, k, None] for k in range(3)]
+    inv_d2 = dirs[0] * dirs[0]
+    inv_d2 += dirs[1] * dirs[1]
+    inv_d2 += dirs[2] * dirs[2]
+    np.reciprocal(inv_d2, out=inv_d2)
+    inv_d = np.sqrt(inv_d2)
+    cos = np.zeros_like(inv_d2)
+    for k in range(3):
+        dirs[k] *= inv_d
+        cos += dirs[k] * n[:, k, None]
+    np.maximum(cos, 0.0, out=cos)
+    return dirs, inv_d2, cos
+
+
+def _lobe_normalisation(s: np.ndarray) -> np.ndarray:
+    """Blinn-Phong normalisation c(s) = (s + 2)(s + 4) / (8 pi (2^(-s/2) + s)) (float32)."""
+    return ((s + 2.0) * (s + 4.0) / (np.float32(8.0 * math.pi) * (np.exp2(-0.5 * s) + s))).astype(np.float32)
 
 
 def _shade_chunk(dirs, inv_d2, cos, visibility, normals, view_dirs, albedo, ks, shininess, J):
@@ -250,13 +299,21 @@ def _shade_chunk(dirs, inv_d2, cos, visibility, normals, view_dirs, albedo, ks, 
     specular = np.zeros_like(diffuse)
     shiny = np.flatnonzero(np.any(ks > 0, axis=1))
     if shiny.size:
-        half = dirs[shiny] + view_dirs[shiny, None, :]
-        half /= np.maximum(np.sqrt(np.sum(half * half, axis=-1)), 1e-12)[..., None]
+        every = shiny.size == len(ks)
+        pick = (lambda a: a) if every else (lambda a: a[shiny])
+        half = [pick(dirs[k]) + view_dirs[shiny, k, None] for k in range(3)]
         n = normals[shiny]
-        n_dot_h = half[..., 0] * n[:, None, 0] + half[..., 1] * n[:, None, 1] + half[..., 2] * n[:, None, 2]
+        inv_norm = half[0] * half[0] + half[1] * half[1] + half[2] * half[2]
+        np.maximum(inv_norm, 1e-24, out=inv_norm)
+        inv_norm = 1.0 / np.sqrt(inv_norm)
+        n_dot_h = half[0] * n[:, 0, None] + half[1] * n[:, 1, None] + half[2] * n[:, 2, None]
+        n_dot_h *= inv_norm
+        np.maximum(n_dot_h, 0.0, out=n_dot_h)
         s = shininess[shiny, None]
-        lobe = (s + 8.0) / np.float32(8.0 * math.pi) * np.power(np.maximum(n_dot_h, 0.0), s)
-        specular[shiny] = ks[shiny] * np.einsum("nl,lc->nc", weight[shiny] * lobe, J)
+        lobe = np.power(n_dot_h, s, out=n_dot_h)
+        lobe *= _lobe_normalisation(s)
+        lobe *= pick(weight)
+        specular[shiny] = ks[shiny] * np.einsum("nl,lc->nc", lobe, J)
     return irradiance, diffuse, specular
 
 
@@ -400,7 +457,8 @@ def render_view(vertices: np.ndarray, faces: np.ndarray, face_uvs: np.ndarray | 
         vertices: (V,3) posed vertices, metres, world frame.
         faces: (F,3) vertex indices.
         face_uvs: (F,3,2) face-corner UVs (None when the material has no textures).
-        material_textures: a :class:`Material` whose fields are UV textures or constants.
+        material_textures: a :class:`Material` whose fields are UV textures or constants (or a
+            dict of its fields: ``{"albedo": (Ht,Wt,3), "specular": ..., "roughness": ...}``).
         camera: the camera (``geometry.cameras.Camera``, pinhole or fisheye).
         lightstage: the lights.
         intensities: (L,3) lighting condition.
@@ -419,6 +477,8 @@ def render_view(vertices: np.ndarray, faces: np.ndarray, face_uvs: np.ndarray | 
     vertices = np.asarray(vertices, dtype=np.float64)
     faces = np.asarray(faces, dtype=np.int64)
     intensities = lightstage.check_intensities(intensities)
+    if isinstance(material_textures, Mapping):
+        material_textures = Material(**material_textures)
     if caster is None:
         caster = RayCaster(vertices, faces)
     if normals is None:
@@ -428,7 +488,8 @@ def render_view(vertices: np.ndarray, faces: np.ndarray, face_uvs: np.ndarray | 
         if vertex_visibility.shape != (len(vertices), lightstage.num_lights):
             raise EgorelightError(f"vertex visibility must be ({len(vertices)},{lightstage.num_lights}), "
                                   f"got {vertex_visibility.shape}")
-    raster = rasterize(vertices, faces, camera, face_uvs=face_uvs, normals=normals, caster=caster)
+    with single_torch_thread():
+        raster = rasterize(vertices, faces, camera, face_uvs=face_uvs, normals=normals, caster=caster)
     mask = raster.mask
     H, W = mask.shape
     n = int(mask.sum())
