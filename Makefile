@@ -35,8 +35,13 @@ bench: $(STAMP)
 	$(BIN)/python bench/run.py
 
 # ---------------------------------------------------------------- subject DAG
+CAPTURE   := $(SUBJECT)/capture/manifest.json
 CHARACTER := $(SUBJECT)/character/manifest.json
 PREVIEWS  := $(SUBJECT)/previews
+
+# simulated lightstage + HMD capture with ground truth (a real capture converted to DESIGN Sec. 5 fits here)
+$(CAPTURE): $(STAMP)
+	$(EGO) $(EGOFLAGS) synth --out $(SUBJECT)/capture
 
 $(CHARACTER): $(STAMP)
 	$(EGO) $(EGOFLAGS) character default --out $(SUBJECT)/character
@@ -45,7 +50,21 @@ $(PREVIEWS)/character.png: $(CHARACTER)
 	@mkdir -p $(PREVIEWS)
 	$(EGO) $(EGOFLAGS) character preview $(SUBJECT)/character --out $@
 
-subject: $(CHARACTER) $(PREVIEWS)/character.png
+# ---------------------------------------------------------------- ik (not in `subject` until egopose exists)
+IK_MODEL := $(SUBJECT)/models/ik/manifest.json
+# Training motions for `train ik` (motion artifacts); empty: the character's default model.
+IK_TRAIN_MOTIONS ?=
+# Ground truth for the ik metrics, e.g. $(SUBJECT)/capture/groundtruth/$(SEQ); empty: none.
+IK_GT ?=
+
+$(IK_MODEL): $(CHARACTER) $(IK_TRAIN_MOTIONS)
+	$(EGO) $(EGOFLAGS) train ik $(IK_TRAIN_MOTIONS) --character $(SUBJECT)/character --out $(SUBJECT)/models/ik
+
+$(SUBJECT)/motion/$(SEQ)/manifest.json: $(SUBJECT)/keypoints/$(SEQ)/manifest.json $(CHARACTER) $(IK_MODEL)
+	$(EGO) $(EGOFLAGS) ik --in $(SUBJECT)/keypoints/$(SEQ) --character $(SUBJECT)/character \
+		--model $(SUBJECT)/models/ik $(if $(IK_GT),--gt $(IK_GT)) --out $(SUBJECT)/motion/$(SEQ)
+
+subject: $(CAPTURE) $(CHARACTER) $(PREVIEWS)/character.png
 
 demo: subject
 	@echo

@@ -38,11 +38,6 @@ def _has_anny() -> bool:
 
 
 @pytest.fixture(scope="module")
-def character():
-    return load_default_character()
-
-
-@pytest.fixture(scope="module")
 def rest_keypoints(character):
     theta = torch.zeros(character.skeleton.num_dofs, dtype=torch.float64)
     return dict(zip(character.keypoint_names, fk.keypoint_positions(theta, character).numpy()))

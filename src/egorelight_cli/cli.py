@@ -169,6 +169,72 @@ def character_preview(ctx: click.Context, character: Path, out: Path) -> None:
     _character_run(ctx).preview(character, out)
 
 
+# -------------------------------------------------------------------------------------- synth
+@cli.command("synth")
+@click.option("--out", required=True, type=click.Path(path_type=Path, file_okay=False), help="Capture directory.")
+@click.option("--character", default=None, help="Subject: a character artifact, character.npz or DDC .character "
+              "(default: the shipped default character).")
+@click.option("--envmap", "envmaps", multiple=True, type=click.Path(path_type=Path, dir_okay=False),
+              help="A user HDR environment map (.exr/.hdr) added to the test lighting (repeatable).")
+@click.option("--motion", default=None, type=click.Path(path_type=Path),
+              help="A motion artifact driving the subject instead of the built-in motion library.")
+@common_options
+@click.pass_context
+def synth_command(ctx: click.Context, out: Path, character: str | None, envmaps: tuple[Path, ...],
+                  motion: Path | None) -> None:
+    """Simulate a lightstage + HMD capture of a synthetic subject, with ground truth."""
+    from egorelight_cli.stages.synth import SynthCommand
+
+    SynthCommand(_stage_run(ctx, "synth"))(out, character, envmaps, motion)
+
+
+# ----------------------------------------------------------------------------------- ik, train
+def _ik_commands(ctx: click.Context, solver: str | None = None):
+    from egorelight_cli.stages.ik_commands import IKCommands
+
+    if solver is not None:  # a config key, so it enters the cache key and the manifest
+        _options(ctx).sets.append(f"solver={solver}")
+    return IKCommands(_stage_run(ctx, "ik"))
+
+
+@cli.command("ik")
+@click.option("--in", "input_path", required=True, type=click.Path(path_type=Path),
+              help="Keypoints artifact (directory or .npz), a .bvh mocap clip, or a DDC .motion.")
+@click.option("--character", default="default", show_default=True,
+              help="'default', a character artifact, a character .npz or a DDC .character.")
+@click.option("--model", "model_path", type=click.Path(path_type=Path), default=None,
+              help="ik model (train ik); default: built from the character.")
+@click.option("--gt", "gt_path", type=click.Path(path_type=Path), default=None,
+              help="Ground truth (keypoints or motion artifact/npz, or a capture/groundtruth/<seq> folder).")
+@click.option("--solver", type=click.Choice(["lm", "lbfgs"]), default=None,
+              help="lm (default, fast) or lbfgs (the paper's baseline).")
+@click.option("--out", required=True, type=click.Path(path_type=Path), help="Motion artifact directory (or .npz file).")
+@common_options
+@click.pass_context
+def ik_command(ctx: click.Context, input_path: Path, character: str, model_path: Path | None, gt_path: Path | None,
+               solver: str | None, out: Path) -> None:
+    """Keypoints -> skeleton motion theta: hierarchical inverse kinematics with hand PCA."""
+    _ik_commands(ctx, solver).ik(input_path, character, model_path, gt_path, out)
+
+
+@cli.group("train")
+def train_group() -> None:
+    """Fit the learned model of a stage (writes a model artifact)."""
+
+
+@train_group.command("ik")
+@click.argument("motions", nargs=-1, type=click.Path(path_type=Path))
+@click.option("--character", default="default", show_default=True,
+              help="'default', a character artifact, a character .npz or a DDC .character.")
+@click.option("--out", required=True, type=click.Path(path_type=Path), help="Model artifact directory.")
+@common_options
+@click.pass_context
+def train_ik(ctx: click.Context, motions: tuple[Path, ...], character: str, out: Path) -> None:
+    """Mean pose and per-hand PCA from training MOTIONS (motion artifacts); with none, the
+    character's default model (synthetic finger poses)."""
+    _ik_commands(ctx).train(motions, character, out)
+
+
 # ------------------------------------------------------------------------------- entry point
 def main(argv: list[str] | None = None) -> None:
     """Console-script entry: maps failures to one line and an exit code."""

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from egorelight_cli.errors import EgorelightError
-from egorelight_cli.io.npz import read_npz, write_npz
+from egorelight_cli.io.npz import read_kind_npz, read_npz, write_npz
 from egorelight_cli.resources import data_dir
 from egorelight_cli.structures.character import Character
 
@@ -48,12 +48,8 @@ def write_character_npz(path: str | Path, character: Character, compact: bool = 
 
 def read_character_arrays(path: str | Path) -> tuple[dict[str, np.ndarray], dict]:
     """The raw arrays and ``__meta__`` of a character npz, kind and version checked."""
-    arrays, meta = read_npz(path, allow_inf=("skeleton_dof_limits",))  # +-inf = no limit
-    if meta.get("kind") != CHARACTER_KIND:
-        raise EgorelightError(f"wrong payload kind: expected {CHARACTER_KIND}, found {meta.get('kind')}", path)
-    if meta.get("version") != CHARACTER_VERSION:
-        raise EgorelightError(f"{CHARACTER_KIND} version mismatch: file is version {meta.get('version')}, "
-                              f"this tool reads version {CHARACTER_VERSION}", path)
+    arrays, meta = read_kind_npz(path, CHARACTER_KIND, CHARACTER_VERSION, check_finite=True,
+                                 allow_inf=("skeleton_dof_limits",))  # +-inf = no limit
     return arrays, meta
 
 

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from egorelight_cli.errors import EgorelightError
-from egorelight_cli.io.npz import read_npz, write_npz
+from egorelight_cli.io.npz import read_kind_npz, read_npz, write_npz
 from egorelight_cli.structures.keypoints import KEYPOINT_NAMES, NUM_KEYPOINTS
 
 KEYPOINTS_KIND = "egorelight/keypoints"
@@ -143,13 +143,7 @@ def save_keypoints(writer, keypoints: Keypoints, name: str | None = None, **meta
 
 def read_keypoints_npz(path: str | Path) -> Keypoints:
     """Read a keypoints ``.npz`` (kind and version checked; NaN xyz allowed = missing)."""
-    arrays, meta = read_npz(path, check_finite=False)
-    kind = meta.get("kind")
-    if kind != KEYPOINTS_KIND:
-        raise EgorelightError(f"wrong payload kind: expected {KEYPOINTS_KIND}, found {kind}", path)
-    if meta.get("version") != KEYPOINTS_VERSION:
-        raise EgorelightError(f"{KEYPOINTS_KIND} version mismatch: file is version {meta.get('version')}, "
-                              f"this tool reads version {KEYPOINTS_VERSION}", path)
+    arrays, meta = read_kind_npz(path, KEYPOINTS_KIND, KEYPOINTS_VERSION)
     return keypoints_from_arrays(arrays, meta, path)
 
 

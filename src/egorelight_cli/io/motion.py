@@ -22,7 +22,8 @@ import numpy as np
 
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.io.keypoints import resolve_payload
-from egorelight_cli.io.npz import read_npz, write_npz
+from egorelight_cli.io.npz import read_kind_npz
+from egorelight_cli.io.npz import write_npz
 
 MOTION_KIND = "egorelight/motion"
 MOTION_VERSION = 1
@@ -123,13 +124,7 @@ def save_motion(writer, motion: Motion, name: str | None = None, **meta) -> Path
 
 def read_motion_npz(path: str | Path) -> Motion:
     """Read a motion ``.npz`` (kind and version checked; residuals may hold NaN, theta may not)."""
-    arrays, meta = read_npz(path, check_finite=False)
-    kind = meta.get("kind")
-    if kind != MOTION_KIND:
-        raise EgorelightError(f"wrong payload kind: expected {MOTION_KIND}, found {kind}", path)
-    if meta.get("version") != MOTION_VERSION:
-        raise EgorelightError(f"{MOTION_KIND} version mismatch: file is version {meta.get('version')}, "
-                              f"this tool reads version {MOTION_VERSION}", path)
+    arrays, meta = read_kind_npz(path, MOTION_KIND, MOTION_VERSION)
     return motion_from_arrays(arrays, meta, path)
 
 

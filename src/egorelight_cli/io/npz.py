@@ -78,6 +78,19 @@ def read_npz(path: str | Path, check_finite: bool = True, allow_inf: tuple[str, 
     return arrays, meta
 
 
+def read_kind_npz(path: str | Path, kind: str, version: int, check_finite: bool = False,
+                  allow_inf: tuple[str, ...] = ()) -> tuple[dict[str, np.ndarray], dict]:
+    """:func:`~egorelight_cli.io.npz.read_npz` with the payload's kind and version checked
+    (by default without the finiteness check: callers validate their arrays)."""
+    arrays, meta = read_npz(path, check_finite=check_finite, allow_inf=allow_inf)
+    if meta.get("kind") != kind:
+        raise EgorelightError(f"wrong payload kind: expected {kind}, found {meta.get('kind')}", path)
+    if meta.get("version") != version:
+        raise EgorelightError(f"{kind} version mismatch: file is version {meta.get('version')}, "
+                              f"this tool reads version {version}", path)
+    return arrays, meta
+
+
 def read_npz_meta(path: str | Path) -> dict:
     """Only the ``__meta__`` entry of an npz (cheap: does not load the other arrays)."""
     path = Path(path)

@@ -120,3 +120,48 @@ def character_preview_image(character: Character, width: int = 384, height: int 
                f"{len(character.skin_bone_names)} bones, {character.graph.num_nodes} graph nodes")
     cv2.putText(image, caption, (8, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
     return image
+
+
+# ------------------------------------------------------------------- ik: skeleton fit previews
+def draw_target_keypoints(image: np.ndarray, keypoints_world: np.ndarray, camera: Camera,
+                          colour=(0, 0, 0)) -> None:
+    """Rings at target keypoints (rows with NaN, i.e. missing keypoints, are skipped)."""
+    scale = max(1, image.shape[0] // 400)
+    finite = np.isfinite(keypoints_world).all(axis=-1)
+    if not finite.any():
+        return
+    pixels = np.asarray(project_world(camera, keypoints_world[finite]))
+    for point in pixels:
+        if np.all(np.isfinite(point)):
+            cv2.circle(image, (int(round(point[0])), int(round(point[1]))), 5 * scale, colour, scale, cv2.LINE_AA)
+
+
+def skeleton_fit_image(character: Character, thetas: np.ndarray, targets: np.ndarray | None = None,
+                       width: int = 320, height: int = 480, labels=()) -> np.ndarray:
+    """(height, n*width, 3) uint8 RGB: for each pose in ``thetas`` (n,D), the skeleton and its
+    keypoints (filled: body red, left hand green, right hand blue) over the target keypoints
+    ``targets`` (n,K,3) (black rings; NaN = missing), seen from the front, with a label."""
+    import torch
+
+    from egorelight_cli.geometry.skeleton import forward_kinematics, keypoint_positions
+
+    views = []
+    for i, theta in enumerate(np.asarray(thetas, dtype=np.float64)):
+        theta_t = torch.as_tensor(theta)
+        T_world_from_joint = forward_kinematics(theta_t, character.skeleton)
+        joints = T_world_from_joint[..., :3, 3].numpy()
+        keypoints = keypoint_positions(theta_t, character, T_world_from_joint).numpy()
+        target = None if targets is None else np.asarray(targets[i], dtype=np.float64)
+        body_joints = joints[~root_translation_joints(character.skeleton.parents, character.skeleton.joint_types)]
+        points = np.concatenate([keypoints, body_joints]
+                                + ([target[np.isfinite(target).all(axis=1)]] if target is not None else []))
+        forward = facing_direction(keypoints) if character.has_standard_keypoints else np.array([0.0, 0.0, -1.0])
+        camera = framing_camera(points, -forward, width, height, f"view{i}")
+        image = np.full((height, width, 3), 255, np.uint8)
+        draw_skeleton(image, joints, character.skeleton.parents, character.skeleton.joint_types, keypoints, camera)
+        if target is not None:
+            draw_target_keypoints(image, target, camera)
+        if i < len(labels):
+            cv2.putText(image, str(labels[i]), (6, 16), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
+        views.append(image)
+    return np.concatenate(views, axis=1)

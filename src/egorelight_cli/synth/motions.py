@@ -125,12 +125,16 @@ def _gait(t: np.ndarray, rng: np.random.Generator, freq: float, hip: float, knee
 
 
 def _circle_path(t: np.ndarray, rng: np.random.Generator, speed: float) -> Pose:
-    """Walk on a circle of radius 0.3-0.5 m around the origin, facing along the path."""
+    """Walk on a circle of radius 0.3-0.5 m around the origin, facing along the path.
+
+    At t = 0 the walker faces -Z (heading 0); :func:`segment_theta` turns the whole path about
+    the vertical axis through the origin to the segment's heading.
+    """
     radius = _u(rng, 0.3, 0.5)
     direction = rng.choice([-1.0, 1.0])
-    angle = _u(rng, 0, 2 * np.pi) + direction * speed / radius * t
     # Position on the circle; the heading is the tangent. The character faces -Z at rotate_y 0,
     # and rotate_y turns it counter-clockwise seen from above (facing -X at +pi/2).
+    angle = direction * (np.pi / 2 + speed / radius * t)
     x, z = radius * np.sin(angle), radius * np.cos(angle)
     tangent = direction * np.stack([np.cos(angle), -np.sin(angle)])
     heading = np.arctan2(-tangent[0], -tangent[1])
@@ -272,9 +276,10 @@ def kicking(t, rng):
     period = _u(rng, 1.5, 2.0)
     phase = (t / period) % 1.0
     kick = np.exp(-((phase - 0.5) / 0.12) ** 2)
+    chamber = np.exp(-((phase - 0.38) / 0.1) ** 2)  # the knee folds before the leg extends
     pose = relaxed_pose(t)
-    pose[f"{side}_hip_flex"] = -0.2 + 1.4 * kick
-    pose[f"{side}_knee"] = -1.2 * (1 - kick) * np.clip(4 * phase, 0, 1) - 0.1
+    pose[f"{side}_hip_flex"] = -0.2 + 1.4 * kick + 0.4 * chamber
+    pose[f"{side}_knee"] = -0.1 - 1.2 * chamber
     pose[f"{_other(side)}_knee"] = _const(t, -0.2)
     for s in SIDES:
         pose[f"{s}_shoulder_abduct"] = -0.1 + 0.4 * kick
@@ -338,12 +343,12 @@ def raising_legs(t, rng):
     return pose
 
 
-def turning_scan(t, rng):
-    """Turning in place (~360+ degrees over the segment) while looking around: the in-the-wild scan."""
-    duration = max(float(t[-1]) if len(t) else 1.0, 1e-3)
+def turning_scan(t, rng, duration: float = 10.0):
+    """Turning in place (~1.1 turns over ``duration`` seconds) while looking around: the in-the-wild
+    scan (the paper: about 10 s)."""
     turns = _u(rng, 1.05, 1.15) * rng.choice([-1.0, 1.0])
     pose = relaxed_pose(t)
-    pose["rotate_y"] = 2 * np.pi * turns * t / duration
+    pose["rotate_y"] = 2 * np.pi * turns * t / max(float(duration), 1e-3)
     step = np.sin(2 * np.pi * 1.2 * t)
     for side, shift in (("left", 0.0), ("right", np.pi)):
         lift = np.clip(np.sin(2 * np.pi * 1.2 * t + shift), 0, None)
@@ -357,12 +362,12 @@ def turning_scan(t, rng):
 def handeye_looking(t, rng):
     """Standing in front of a calibration board, moving the head in every direction (hand-eye)."""
     pose = relaxed_pose(t)
-    pose["neck_bend"] = 0.35 + smooth_noise(t, rng, 0.15, 0.5)
-    pose["neck_twist"] = smooth_noise(t, rng, 0.35, 0.5)
-    pose["neck_lean"] = smooth_noise(t, rng, 0.2, 0.5)
-    pose["head_bend"] = smooth_noise(t, rng, 0.12, 0.5)
-    pose["head_lean"] = smooth_noise(t, rng, 0.15, 0.5)
-    pose["spine2_twist"] = smooth_noise(t, rng, 0.08, 0.3)
+    pose["neck_bend"] = 0.3 + smooth_noise(t, rng, 0.1, 0.5)
+    pose["neck_twist"] = smooth_noise(t, rng, 0.18, 0.5)
+    pose["neck_lean"] = smooth_noise(t, rng, 0.12, 0.5)
+    pose["head_bend"] = smooth_noise(t, rng, 0.08, 0.5)
+    pose["head_lean"] = smooth_noise(t, rng, 0.1, 0.5)
+    pose["spine2_twist"] = smooth_noise(t, rng, 0.05, 0.3)
     pose["spine1_bend"] = 0.05 + smooth_noise(t, rng, 0.06, 0.3)
     return pose
 
@@ -445,27 +450,37 @@ def segment_theta(character: Character, segment: Segment, t: np.ndarray, rng: np
                   heading: float = 0.0, origin=(0.0, 0.0)) -> tuple[np.ndarray, np.ndarray]:
     """(n,D) theta and (n,) jump height of one motion instance at local times ``t`` (s).
 
-    Non-locomotion motions are placed at ``origin`` (x, z) facing ``heading`` (rotate_y, rad).
+    Non-locomotion motions are placed at ``origin`` (x, z) facing ``heading`` (rotate_y, rad);
+    locomotion paths are turned by ``heading`` about the vertical axis through the origin.
     """
     if segment.motion not in MOTIONS:
         raise EgorelightError(f"unknown motion type {segment.motion!r}; known: {', '.join(MOTIONS)}")
     pose = dict(relaxed_pose(t))
-    pose.update(MOTIONS[segment.motion](t, rng))
+    if segment.motion == "turning_scan":
+        pose.update(turning_scan(t, rng, duration=segment.duration_s))
+    else:
+        pose.update(MOTIONS[segment.motion](t, rng))
     pose.update(_breathing(t, rng) if "spine3_bend" not in pose else {})
     if "translate_x" not in pose:
         pose["translate_x"] = _const(t, origin[0])
         pose["translate_z"] = _const(t, origin[1])
+    else:
+        x, z = np.asarray(pose["translate_x"]), np.asarray(pose["translate_z"])
+        c, s = np.cos(heading), np.sin(heading)
+        pose["translate_x"], pose["translate_z"] = c * x + s * z, -s * x + c * z
     pose["rotate_y"] = heading + np.asarray(pose.get("rotate_y", 0.0))
     return _pose_to_theta(pose, character.skeleton.dof_names, len(t))
 
 
 def compose_motion(character: Character, segments: Sequence[Segment], fps: float, num_frames: int,
                    seed: int, crossfade_s: float = 0.4, heading_range: float = 0.7,
-                   start_s: float = 0.0) -> np.ndarray:
+                   start_s: float = 0.0, origin_range: float = 0.1) -> np.ndarray:
     """Theta (num_frames, D) of ``segments`` played in order at ``fps``, cross-faded, grounded, clipped.
 
     Segments shorter than the requested span are repeated in order; each (segment, repetition)
-    draws its own instance from ``seed``. Frame ``i`` is at time ``start_s + i / fps``.
+    draws its own instance from ``seed``. Frame ``i`` is at time ``start_s + i / fps``. Each
+    instance turns by up to ``heading_range`` (rad) from where the previous one ended and stands
+    within ``origin_range`` (m) of the dome centre.
     """
     check_motion_dofs(character)
     if not segments:
@@ -486,6 +501,8 @@ def compose_motion(character: Character, segments: Sequence[Segment], fps: float
     D = character.skeleton.num_dofs
     theta = np.zeros((num_frames, D))
     jump = np.zeros(num_frames)
+    rotate_y = character.skeleton.dof_index("rotate_y")
+    last_heading = 0.0
     weight_sum = np.zeros(num_frames)
     for i, (segment, start) in enumerate(zip(instances, starts)):
         end = start + segment.duration_s
@@ -495,12 +512,19 @@ def compose_motion(character: Character, segments: Sequence[Segment], fps: float
         w = fade_in * fade_out
         active = w > 1e-6
         sub_rng = np.random.default_rng(rng.integers(1 << 62))
-        heading = float(sub_rng.uniform(-heading_range, heading_range))
-        origin = sub_rng.uniform(-0.1, 0.1, size=2)
+        # Each instance faces near where the previous one ended, drifting back towards -Z.
+        wrapped = (last_heading + np.pi) % (2 * np.pi) - np.pi
+        heading = float(last_heading - 0.3 * wrapped + sub_rng.uniform(-heading_range, heading_range))
+        origin = sub_rng.uniform(-origin_range, origin_range, size=2)
+        # Evaluate at the frames and at the segment's end (sorted: paths unwrap their heading).
+        local_t = np.append(t - start, end - start)
+        order = np.argsort(local_t, kind="stable")
+        seg_theta, seg_jump = np.empty((len(local_t), D)), np.empty(len(local_t))
+        seg_theta[order], seg_jump[order] = segment_theta(character, segment, local_t[order], sub_rng, heading, origin)
+        last_heading = float(seg_theta[-1, rotate_y])
+        seg_theta, seg_jump = seg_theta[:-1], seg_jump[:-1]
         if not active.any():
             continue
-        local_t = t - start
-        seg_theta, seg_jump = segment_theta(character, segment, local_t, sub_rng, heading, origin)
         theta[active] += w[active, None] * seg_theta[active]
         jump[active] += w[active] * seg_jump[active]
         weight_sum[active] += w[active]

@@ -1,0 +1,296 @@
+"""The ``egorelight ik`` and ``egorelight train ik`` commands: load inputs, call
+:mod:`egorelight_cli.stages.ik`, write artifacts.
+
+``ik --in`` accepts
+
+* a keypoints artifact (directory with ``keypoints.npz``, a single ``.npz`` with its sidecar, or a
+  lone self-describing ``keypoints.npz``, e.g. ``capture/groundtruth/<seq>/keypoints.npz``);
+* a BVH clip (``.bvh``): its joints are mapped to the keypoint layout
+  (:mod:`egorelight_cli.io.bvh`), scaled to the character (``bvh.scale: 0`` fits one global scale
+  to the character's bone lengths) and fitted, i.e. retargeted onto the character;
+* a DDC motion (``.motion``): taken as theta directly when its DoF count matches the character.
+
+``--gt`` accepts a keypoints or motion artifact (or lone npz), or a directory holding
+``keypoints.npz`` and/or ``motion.npz`` (the simulator's ``capture/groundtruth/<seq>/``).
+
+The motion artifact holds ``motion.npz`` (see :mod:`egorelight_cli.io.motion`) and, for a
+directory output, ``preview.png`` (fitted skeleton over the target keypoints for a few frames).
+The ik model artifact (``train ik``) is a model directory in the shared layout of
+:mod:`egorelight_cli.io.model` (``model.pt``: ``theta_bar`` and the hand PCAs as tensors, DoF
+names and provenance in ``extra``; ``curve.json``/``curve.png``: cumulative explained variance of
+each hand's PCA per component).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from egorelight_cli.artifacts import Artifact, ArtifactWriter, MANIFEST_NAME
+from egorelight_cli.config import Config
+from egorelight_cli.errors import EgorelightError
+from egorelight_cli.io.keypoints import Keypoints, load_keypoints
+from egorelight_cli.io.motion import Motion, load_motion, save_motion
+from egorelight_cli.pipeline import StageRun
+from egorelight_cli.stages.ik import (IK_MODEL_TYPE, IKModel, IKResult, IKSettings, default_ik_model,
+                                      fit_global_scale, fit_metrics, fitted_keypoints, gt_metrics, scale_keypoints,
+                                      solve_ik, train_ik_model)
+from egorelight_cli.structures.character import Character
+
+PREVIEW_PNG = "preview.png"
+
+
+# ---------------------------------------------------------------------------------- inputs
+@dataclass
+class IKInput:
+    """What ``--in`` resolved to: keypoints to fit, or theta to take as is (DDC motion)."""
+
+    keypoints: Keypoints | None = None
+    theta: np.ndarray | None = None
+    frame_ids: np.ndarray | None = None
+    artifact: Artifact | None = None
+    sources: list[Path] = field(default_factory=list)
+    info: dict = field(default_factory=dict)
+
+
+def load_ik_input(path: Path, character: Character, cfg: Config) -> IKInput:
+    """Resolve ``--in`` (see the module docstring)."""
+    path = Path(path)
+    if not path.exists():
+        raise EgorelightError("input not found", path)
+    suffix = path.suffix.lower()
+    if suffix == ".bvh":
+        return _bvh_input(path, character, cfg)
+    if suffix == ".motion":
+        from egorelight_cli.io.ddc import read_motion
+
+        motion = read_motion(path, num_dofs=character.skeleton.num_dofs)
+        if len(motion.frame_ids) == 0:
+            raise EgorelightError("DDC motion holds no frames", path)
+        return IKInput(theta=motion.values, frame_ids=motion.frame_ids, sources=[path], info={"source": "ddc motion"})
+    keypoints, artifact = load_keypoints(path)
+    return IKInput(keypoints=keypoints, artifact=artifact, sources=[] if artifact else [path],
+                   info={"source": "keypoints"})
+
+
+def _bvh_input(path: Path, character: Character, cfg: Config) -> IKInput:
+    from egorelight_cli.io.bvh import bvh_keypoints, read_bvh
+
+    bvh = cfg["bvh"]
+    stride = int(bvh["stride"])
+    if stride < 1:
+        raise EgorelightError(f"ik bvh.stride must be at least 1, got {stride}")
+    clip = read_bvh(path)
+    keypoints, mapping = bvh_keypoints(clip, unit_scale=float(bvh["unit_scale"]), up_axis=str(bvh["up_axis"]),
+                                       keypoint_names=character.keypoint_names)
+    keypoints = keypoints.select(slice(None, None, stride))
+    keypoints = Keypoints(keypoints.xyz, keypoints.confidence, keypoints.frame_ids, keypoints.names, clip.fps / stride)
+    scale = float(bvh["scale"]) or fit_global_scale(character, keypoints)
+    keypoints = scale_keypoints(keypoints, scale)
+    info = {"source": "bvh", "bvh_joints_mapped": len(mapping), "bvh_scale": scale, "bvh_fps": clip.fps,
+            "bvh_mapping": mapping}
+    return IKInput(keypoints=keypoints, sources=[path], info=info)
+
+
+def load_gt(path: Path, character: Character) -> tuple[Keypoints | None, Motion | None, list[Artifact], list[Path]]:
+    """Ground truth from a keypoints/motion artifact or lone npz, or a folder with
+    ``keypoints.npz``/``motion.npz`` (see the module docstring)."""
+    from egorelight_cli.io.npz import read_npz_meta
+
+    path = Path(path)
+    if not path.exists():
+        raise EgorelightError("ground truth not found", path)
+    candidates = [path]
+    if path.is_dir() and not (path / MANIFEST_NAME).is_file():
+        candidates = [p for p in (path / "keypoints.npz", path / "motion.npz") if p.is_file()]
+        if not candidates:
+            raise EgorelightError("ground-truth folder holds neither keypoints.npz nor motion.npz", path)
+    keypoints = motion = None
+    artifacts: list[Artifact] = []
+    sources: list[Path] = []
+    for candidate in candidates:
+        kind = _artifact_kind(candidate) or str(read_npz_meta(candidate).get("kind", "")).removeprefix("egorelight/")
+        if kind == "keypoints":
+            keypoints, artifact = load_keypoints(candidate)
+        elif kind == "motion":
+            motion, artifact = load_motion(candidate)
+            motion.check_dofs(character.skeleton.dof_names, candidate)
+        else:
+            raise EgorelightError(f"ground truth must be keypoints or motion, found {kind or 'no kind'}", candidate)
+        if artifact is not None:
+            artifacts.append(artifact)
+        else:
+            sources.append(candidate)
+    return keypoints, motion, artifacts, sources
+
+
+def _artifact_kind(path: Path) -> str | None:
+    from egorelight_cli.artifacts import manifest_path_for, open_artifact
+
+    manifest_path, _ = manifest_path_for(path)
+    if not manifest_path.is_file():
+        if path.is_dir():
+            raise EgorelightError("not a finished egorelight artifact (directory has no manifest.json)", path)
+        return None
+    return open_artifact(path).kind
+
+
+def character_sources(spec: str, artifact: Artifact | None) -> list[Path]:
+    """Files a character came from that are not an artifact (cache keys, provenance)."""
+    from egorelight_cli.io.character import default_character_path
+
+    if artifact is not None:
+        return []
+    if str(spec) == "default":
+        return [default_character_path()]
+    path = Path(spec)
+    if path.suffix == ".character":
+        from egorelight_cli.io.ddc import ddc_character_files
+
+        return ddc_character_files(path)
+    return [path]
+
+
+# ----------------------------------------------------------------------------------- models
+def write_ik_model(writer: ArtifactWriter, model: IKModel) -> None:
+    """Fill a model artifact with ``model`` (layout of :mod:`egorelight_cli.io.model`)."""
+    from egorelight_cli.io.model import ModelPayload, write_model
+
+    arrays = model.arrays()
+    state = {k: torch.as_tensor(v) for k, v in arrays.items() if k not in ("dof_names", "hand_sides")}
+    curve = []
+    for component in range(max((h.num_components for h in model.hands), default=0)):
+        row = {"step": component + 1}
+        for h in model.hands:
+            total = h.total_variance or 1.0
+            row[f"{h.side.lower()}_hand_explained"] = float(h.variance[:component + 1].sum() / total)
+        curve.append(row)
+    extra = {"dof_names": list(model.dof_names), "hand_sides": [h.side for h in model.hands], **model.meta()}
+    write_model(writer.workdir, ModelPayload(IK_MODEL_TYPE, {"type": "theta_bar + hand PCA"}, state, extra, curve),
+                curve_title="ik hand PCA: cumulative explained variance")
+    writer.units.update({"theta_bar": "rad | m"})
+    writer.metrics.update({"source": model.source, "training_frames": model.num_training_frames})
+    for h in model.hands:
+        side = h.side.lower()
+        writer.metrics.update({f"{side}_hand_dofs": int(len(h.dof_index)), f"{side}_hand_components": h.num_components,
+                               f"{side}_hand_explained_variance": curve[h.num_components - 1][f"{side}_hand_explained"]})
+
+
+def load_ik_model(path: Path) -> tuple[IKModel, Artifact]:
+    """Read an ik model artifact (kind model, trained by ``train ik``)."""
+    from egorelight_cli.artifacts import open_artifact
+    from egorelight_cli.io.model import read_model
+
+    artifact = open_artifact(path, kind="model")
+    if artifact.single_file:
+        raise EgorelightError("an ik model is a directory artifact", path)
+    payload = read_model(artifact.root, stage=IK_MODEL_TYPE)
+    arrays = {k: v.numpy() for k, v in payload.state_dict.items()}
+    arrays["dof_names"] = np.array(payload.extra.get("dof_names", []))
+    arrays["hand_sides"] = np.array(payload.extra.get("hand_sides", []))
+    try:
+        return IKModel.from_arrays(arrays, payload.extra), artifact
+    except KeyError as exc:
+        raise EgorelightError(f"ik model lacks {exc.args[0]!r}", path) from None
+
+
+# ---------------------------------------------------------------------------------- results
+def passthrough_result(character: Character, theta: np.ndarray, frame_ids: np.ndarray, fps: float) -> IKResult:
+    """An :class:`IKResult` for theta taken as is (no fit)."""
+    fitted = fitted_keypoints(character, theta)
+    return IKResult(np.asarray(theta, np.float64), np.asarray(frame_ids, np.int64), fps, fitted,
+                    np.full(fitted.shape[:2], np.nan), (), "none", 0.0)
+
+
+def preview_frames(num_frames: int, count: int) -> np.ndarray:
+    """Up to ``count`` frame positions spread over the sequence."""
+    return np.unique(np.linspace(0, num_frames - 1, max(min(count, num_frames), 1)).round().astype(int))
+
+
+@dataclass(frozen=True)
+class IKCommands:
+    """``ik`` and ``train ik`` over one :class:`StageRun` (the global options)."""
+
+    run: StageRun
+
+    def ik(self, input_path: Path, character_spec: str, model_path: Path | None, gt_path: Path | None, out: Path) -> Path:
+        from egorelight_cli.stages.character_commands import load_character
+
+        character, character_artifact = load_character(character_spec)
+        cfg = self.run.config()
+        source = load_ik_input(input_path, character, cfg)
+        inputs = [a for a in (source.artifact, character_artifact) if a is not None]
+        sources = source.sources + character_sources(character_spec, character_artifact)
+        model = None
+        if model_path is not None:
+            model, model_artifact = load_ik_model(model_path)
+            model.check_character(character, model_path)
+            inputs.append(model_artifact)
+        gt_keypoints = gt_motion = None
+        if gt_path is not None:
+            gt_keypoints, gt_motion, gt_artifacts, gt_sources = load_gt(gt_path, character)
+            inputs += gt_artifacts
+            sources += gt_sources
+        if source.keypoints is not None:
+            from egorelight_cli.stages.ik import check_keypoints_for
+
+            check_keypoints_for(character, source.keypoints, IKSettings.from_config(cfg), input_path)
+
+        def write(writer: ArtifactWriter, cfg: Config) -> None:
+            settings = IKSettings.from_config(cfg)
+            if source.keypoints is not None:
+                result = solve_ik(character, source.keypoints, model or default_ik_model(character, settings), settings)
+            else:
+                result = passthrough_result(character, source.theta, source.frame_ids, settings.fps)
+            save_motion(writer, result.motion(character.skeleton.dof_names), source=source.info.get("source"))
+            writer.metrics.update(fit_metrics(result))
+            writer.metrics.update({k: v for k, v in source.info.items() if k != "source"})
+            writer.metrics["input"] = source.info.get("source")
+            if gt_keypoints is not None or gt_motion is not None:
+                writer.metrics.update(gt_metrics(character, result, gt_keypoints, gt_motion))
+            writer.runtime["solver"] = result.solver
+            if not writer.single_file:
+                _write_preview(writer, character, result, source.keypoints, cfg)
+
+        return self.run.produce(out, "motion", write, inputs=inputs, source_files=sources)
+
+    def train(self, motion_paths: tuple[Path, ...], character_spec: str, out: Path) -> Path:
+        from egorelight_cli.stages.character_commands import load_character
+
+        character, character_artifact = load_character(character_spec)
+        inputs = [a for a in (character_artifact,) if a is not None]
+        sources = character_sources(character_spec, character_artifact)
+        motions = []
+        for path in motion_paths:
+            motion, artifact = load_motion(path)
+            motion.check_dofs(character.skeleton.dof_names, path)
+            motions.append(motion.theta)
+            if artifact is not None:
+                inputs.append(artifact)
+            else:
+                sources.append(Path(path))
+
+        def write(writer: ArtifactWriter, cfg: Config) -> None:
+            if writer.single_file:
+                raise EgorelightError("an ik model is a directory artifact: give --out a directory name", out)
+            write_ik_model(writer, train_ik_model(character, motions, IKSettings.from_config(cfg)))
+
+        return self.run.produce(out, "model", write, inputs=inputs, source_files=sources)
+
+
+def _write_preview(writer: ArtifactWriter, character: Character, result: IKResult, keypoints: Keypoints | None,
+                   cfg: Config) -> None:
+    from egorelight_cli.io.images import write_image
+    from egorelight_cli.render.preview import skeleton_fit_image
+
+    preview = cfg["preview"]
+    rows = preview_frames(len(result.theta), int(preview["frames"]))
+    targets = keypoints.xyz[rows] if keypoints is not None else None
+    labels = [f"frame {int(result.frame_ids[r])}" for r in rows]
+    image = skeleton_fit_image(character, result.theta[rows], targets, int(preview["width"]), int(preview["height"]), labels)
+    write_image(writer.path(PREVIEW_PNG), image)
+
+

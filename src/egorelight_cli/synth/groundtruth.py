@@ -1,0 +1,83 @@
+"""Ground truth of a simulated capture (``capture/groundtruth/``), read only by evaluation and tests.
+
+Global files::
+
+    groundtruth/hand_eye.json        {role: {"T_cam_from_hmd": 4x4, "T_cam_from_hmd_nominal": 4x4}}
+    groundtruth/streams.json         {seq: {"ego_offset": k}}: ego frame e <-> studio frame e + k
+    groundtruth/ego_response.json    {role: CameraResponse.to_dict()} of every HMD camera
+    groundtruth/appearance.exr       UV maps: albedo.R/G/B, specular.Y, roughness.Y (+ material.Y)
+    groundtruth/appearance.json      what the seed chose (skin tone, shirt pattern, ...)
+    groundtruth/hmd_mount.json       head joint name and T_joint_from_hmd
+    groundtruth/board_pose.json      T_world_from_board of the hand-eye sequence
+    groundtruth/envmaps/<name>.exr   maps no stage may read (the in-the-wild environment)
+
+Per sequence ``groundtruth/<seq>/``::
+
+    motion.npz       motion payload (theta, dof_names, frame_ids, fps), standalone with __meta__
+    keypoints.npz    keypoints payload (xyz, confidence = 1, frame_ids, names); __meta__ ego_frame_ids
+    meshes.npz       vertices (T,V,3) float32 true body surface, faces, theta, eg_rotation (0),
+                     eg_translation = clothing (pose part + random part), frame_ids
+    clothing.npz     node_translation_pose, node_translation_random (T,N,3) float32, frame_ids
+    head_pose.npz    T_world_from_hmd (T,4,4) float64, frame_ids, ego_frame_ids  (HMD worn)
+    tracker.json     wild only: latency, drift, the tracker's world offset
+
+``frame_ids`` are the sequence's studio frame ids (for ``wild``: ego frame ids); the arrays
+``ego_frame_ids`` give the ego frame exposed at each (-1: none).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from egorelight_cli.io.exr import write_exr_layers
+from egorelight_cli.io.keypoints import Keypoints, write_keypoints_npz
+from egorelight_cli.io.motion import Motion, write_motion_npz
+from egorelight_cli.io.npz import write_npz
+from egorelight_cli.structures.character import Character
+from egorelight_cli.synth.appearance import Appearance
+
+GT = "groundtruth"
+
+
+def write_json(path: Path, data) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(data, indent=1, sort_keys=True) + "\n")
+
+
+def write_appearance(root: Path, appearance: Appearance) -> None:
+    write_exr_layers(root / GT / "appearance.exr", {
+        "albedo": appearance.albedo, "specular": appearance.specular, "roughness": appearance.roughness,
+        "material": appearance.material.astype(np.float32)[..., None]})
+    write_json(root / GT / "appearance.json", appearance.description)
+
+
+def write_sequence_truth(root: Path, seq: str, character: Character, frame_ids: np.ndarray, ego_ids: np.ndarray,
+                         fps: float, theta: np.ndarray, keypoints: np.ndarray, bodies: np.ndarray,
+                         beta_pose: np.ndarray, beta_random: np.ndarray, head_poses: np.ndarray | None) -> None:
+    folder = root / GT / seq
+    folder.mkdir(parents=True, exist_ok=True)
+    frame_ids = np.asarray(frame_ids, dtype=np.int64)
+    write_motion_npz(folder / "motion.npz", Motion(theta, character.skeleton.dof_names, frame_ids, fps),
+                     source="synth ground truth")
+    kp = Keypoints(keypoints, np.ones(keypoints.shape[:2], np.float32), frame_ids, character.keypoint_names, fps)
+    write_keypoints_npz(folder / "keypoints.npz", kp, source="synth ground truth",
+                        ego_frame_ids=[int(e) for e in ego_ids])
+    beta = (beta_pose + beta_random).astype(np.float32)
+    write_npz(folder / "meshes.npz", {
+        "vertices": bodies.astype(np.float32), "faces": character.faces.astype(np.int32), "theta": theta.astype(np.float32),
+        "eg_rotation": np.zeros_like(beta), "eg_translation": beta, "frame_ids": frame_ids, "ego_frame_ids": ego_ids,
+    }, {"kind": "egorelight/meshes", "version": 1, "units": {"vertices": "m", "eg_translation": "m"},
+        "frame_ids": frame_ids.tolist(), "fps": fps, "source": "synth ground truth (offsets are zero)"})
+    write_npz(folder / "clothing.npz", {
+        "node_translation_pose": beta_pose.astype(np.float32), "node_translation_random": beta_random.astype(np.float32),
+        "frame_ids": frame_ids,
+    }, {"kind": "egorelight/synth_clothing", "version": 1, "units": {"node_translation": "m (canonical space)"},
+        "frame_ids": frame_ids.tolist()})
+    if head_poses is not None:
+        write_npz(folder / "head_pose.npz", {"T_world_from_hmd": head_poses.astype(np.float64),
+                                             "frame_ids": frame_ids, "ego_frame_ids": ego_ids},
+                  {"kind": "egorelight/head_pose", "version": 1, "units": {"T_world_from_hmd": "m"},
+                   "frame_ids": frame_ids.tolist(), "fps": fps})

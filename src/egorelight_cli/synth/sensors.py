@@ -1,0 +1,136 @@
+"""Simulating the sensors of one frame with the renderer (``render/shading.py``).
+
+Per frame: one Embree scene of the posed mesh, per-vertex light visibility once (shared by every
+camera), then
+
+* each **studio camera**: :func:`render_view` under the lightstage's lighting condition, linear
+  radiance times the studio exposure (HDR; black dome interior behind the subject);
+* each **ego camera** (posed by the head): :func:`render_view` of the scene over what the camera
+  sees of its surroundings at infinity (in the studio: the dome's LEDs showing the current light
+  pattern; in the wild: the environment map) via :func:`render_envmap_view`, then the camera's
+  fixed, unknown :class:`CameraResponse` to 8-bit sRGB with noise.
+
+Lighting in the wild uses a dense virtual dome of distant lights (the environment's S(E)).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from egorelight_cli.geometry.cameras import Camera
+from egorelight_cli.geometry.equirect import equirect_directions
+from egorelight_cli.geometry.raycast import RayCaster
+from egorelight_cli.render.camera_response import CameraResponse, render_envmap_view
+from egorelight_cli.render.lightstage import LightStage
+from egorelight_cli.render.raster import vertex_normals
+from egorelight_cli.render.shading import (
+    RenderResult,
+    render_view,
+    vertex_light_visibility,
+)
+from egorelight_cli.synth.scene import SceneLayout
+
+#: Angular radius of an LED seen from the dome centre (backdrop of the ego cameras), radians.
+LED_RADIUS = np.radians(3.0)
+#: Radiance of the dome between the LEDs, relative to the mean light radiance.
+DOME_FILL = 0.03
+
+
+def light_intensities(lightstage: LightStage, entry: dict, envmaps: dict[str, np.ndarray]) -> np.ndarray:
+    """(L,3) lighting condition of a ``sequence.json`` light entry."""
+    pattern, scale = entry["pattern"], float(entry.get("scale", 1.0))
+    if pattern in ("flat", "flash"):
+        return lightstage.flat(scale)
+    if pattern == "dark":
+        return np.zeros((lightstage.num_lights, 3))
+    if pattern == "olat":
+        return lightstage.olat(int(entry["olat_index"]), scale)
+    return scale * lightstage.envmap_to_intensities(envmaps[entry["envmap"]], float(entry.get("yaw_deg", 0.0)))
+
+
+class DomeBackdrop:
+    """What a camera near the dome centre sees around it: LED discs showing the light pattern."""
+
+    def __init__(self, lightstage: LightStage, height: int = 64):
+        dirs = equirect_directions(height).reshape(-1, 3)
+        distance, nearest = cKDTree(lightstage.directions).query(dirs)
+        self.shape = (height, 2 * height, 3)
+        self.nearest = nearest
+        self.on_led = 2 * np.arcsin(np.clip(distance / 2, 0, 1)) < LED_RADIUS
+        self.gain = lightstage.rgb_gain
+
+    def envmap(self, intensities: np.ndarray) -> np.ndarray:
+        radiance = intensities * self.gain
+        fill = DOME_FILL * radiance.mean(axis=0)
+        out = np.where(self.on_led[:, None], radiance[self.nearest], fill[None])
+        return out.reshape(self.shape).astype(np.float32)
+
+
+@dataclass
+class Timer:
+    """Accumulated render seconds and counts per camera kind."""
+
+    seconds: dict = field(default_factory=dict)
+    counts: dict = field(default_factory=dict)
+
+    def add(self, kind: str, seconds: float) -> None:
+        self.seconds[kind] = self.seconds.get(kind, 0.0) + seconds
+        self.counts[kind] = self.counts.get(kind, 0) + 1
+
+    def per_camera_frame(self) -> dict:
+        return {k: self.seconds[k] / max(self.counts[k], 1) for k in self.seconds}
+
+
+@dataclass
+class FrameRenderer:
+    """Renders the cameras of one posed frame (see the module docstring)."""
+
+    layout: SceneLayout
+    lightstage: LightStage
+    exact_lights: int
+    timer: Timer
+
+    def prepare(self, vertices: np.ndarray, intensities: np.ndarray) -> PreparedFrame:
+        faces = self.layout.atlas.faces
+        caster = RayCaster(vertices, faces)
+        normals = vertex_normals(vertices, faces)
+        start = time.perf_counter()
+        if np.any(intensities > 0):
+            visibility = vertex_light_visibility(vertices, faces, self.lightstage, caster=caster, normals=normals)
+        else:
+            visibility = np.zeros((len(vertices), self.lightstage.num_lights), dtype=bool)
+        self.timer.add("visibility", time.perf_counter() - start)
+        return PreparedFrame(self, vertices, caster, normals, visibility, intensities)
+
+
+@dataclass
+class PreparedFrame:
+    renderer: FrameRenderer
+    vertices: np.ndarray
+    caster: RayCaster
+    normals: np.ndarray
+    visibility: np.ndarray
+    intensities: np.ndarray
+
+    def render(self, camera: Camera, kind: str, background=None) -> RenderResult:
+        r = self.renderer
+        start = time.perf_counter()
+        result = render_view(self.vertices, r.layout.atlas.faces, r.layout.atlas.face_uvs, r.layout.atlas.material,
+                             camera, r.lightstage, self.intensities, caster=self.caster,
+                             vertex_visibility=self.visibility, background=background, normals=self.normals,
+                             exact_lights=r.exact_lights)
+        r.timer.add(kind, time.perf_counter() - start)
+        return result
+
+    def render_ego(self, camera: Camera, response: CameraResponse, surroundings: np.ndarray, yaw_deg: float,
+                   rng: np.random.Generator) -> tuple[np.ndarray, RenderResult]:
+        """(uint8 sRGB image, render) of an HMD camera seeing the scene over ``surroundings``."""
+        start = time.perf_counter()
+        background = render_envmap_view(surroundings, camera, yaw_deg, supersample=1)
+        self.renderer.timer.add("backdrop", time.perf_counter() - start)
+        result = self.render(camera, "ego", background=background)
+        return response.apply(result.radiance, rng), result
