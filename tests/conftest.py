@@ -26,3 +26,28 @@ def ddc_example() -> Path:
 def character():
     """The shipped default character (shared, read-only: tests must not modify it)."""
     return load_default_character()
+
+
+@pytest.fixture(scope="session")
+def tiny_capture(tmp_path_factory) -> Path:
+    """One ``egorelight synth --preset tiny`` capture per test session (about 40 s on 2 cores),
+    with a user HDR map added to the test lighting. Read-only: tests must not modify it."""
+    from egorelight_cli.cli import main
+    from egorelight_cli.render.envmaps import make_envmap, write_envmap
+
+    root = tmp_path_factory.mktemp("synth")
+    user_map = root / "my_room.exr"
+    write_envmap(user_map, make_envmap("indoor", 123, 16))
+    out = root / "capture"
+    with pytest.raises(SystemExit) as exit_info:
+        main(["synth", "--preset", "tiny", "--out", str(out), "--envmap", str(user_map), "-q"])
+    assert exit_info.value.code == 0
+    return out
+
+
+@pytest.fixture(scope="session")
+def oracle_calibration(tiny_capture):
+    """The tiny capture's calibration taken from its ground truth (for stages downstream of calibrate)."""
+    from egorelight_cli.synth.groundtruth import oracle_calibration as from_groundtruth
+
+    return from_groundtruth(tiny_capture)

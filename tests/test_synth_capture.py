@@ -37,15 +37,8 @@ def rotation_error_deg(a: np.ndarray, b: np.ndarray) -> float:
 
 
 @pytest.fixture(scope="module")
-def capture(tmp_path_factory) -> Path:
-    root = tmp_path_factory.mktemp("synth")
-    user_map = root / "my_room.exr"
-    write_envmap(user_map, make_envmap("indoor", 123, 16))
-    out = root / "capture"
-    with pytest.raises(SystemExit) as exit_info:
-        main(["synth", "--preset", "tiny", "--out", str(out), "--envmap", str(user_map), "-q"])
-    assert exit_info.value.code == 0
-    return out
+def capture(tiny_capture) -> Path:
+    return tiny_capture
 
 
 def _json(path: Path):

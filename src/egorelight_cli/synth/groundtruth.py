@@ -81,3 +81,52 @@ def write_sequence_truth(root: Path, seq: str, character: Character, frame_ids: 
                                              "frame_ids": frame_ids, "ego_frame_ids": ego_ids},
                   {"kind": "egorelight/head_pose", "version": 1, "units": {"T_world_from_hmd": "m"},
                    "frame_ids": frame_ids.tolist(), "fps": fps})
+
+
+# ---------------------------------------------------------------- reading (evaluation and tests only)
+
+def read_json(root: str | Path, name: str):
+    """A global ground-truth JSON file (``hand_eye.json``, ``streams.json``, ...) of capture ``root``."""
+    from egorelight_cli.errors import EgorelightError
+
+    path = Path(root) / GT / name
+    if not path.exists():
+        raise EgorelightError("ground truth file not found (only simulated captures have one)", path)
+    return json.loads(path.read_text())
+
+
+def read_head_poses(root: str | Path, seq: str) -> dict[str, np.ndarray]:
+    """True ``T_world_from_hmd`` (T,4,4), ``frame_ids`` (studio ids; wild: ego ids), ``ego_frame_ids``."""
+    from egorelight_cli.io.npz import read_npz
+
+    arrays, _ = read_npz(Path(root) / GT / seq / "head_pose.npz")
+    return arrays
+
+
+def oracle_calibration(root: str | Path):
+    """A :class:`~egorelight_cli.io.calibration.Calibration` built from ground truth: true hand-eye
+    transforms, true stream offsets and true head poses of every sequence with a worn HMD.
+
+    For evaluation and tests of the stages downstream of ``calibrate`` (isolating their error
+    from calibration error); no stage uses it.
+    """
+    from egorelight_cli.io.calibration import Calibration, EgoCameraCalibration, HeadPoses
+
+    root = Path(root)
+    hand_eye = read_json(root, "hand_eye.json")
+    hmd = json.loads((root / "rig" / "hmd.json").read_text())
+    names = {cam["role"]: cam["name"] for cam in hmd["cameras"]}
+    cameras = {role: EgoCameraCalibration(role, names.get(role, role), np.asarray(doc["T_cam_from_hmd"], np.float64),
+                                          residual_px=0.0, residual_mm=0.0)
+               for role, doc in hand_eye.items()}
+    offsets = {seq: -int(doc["ego_offset"]) for seq, doc in read_json(root, "streams.json").items()}
+    head_poses = {}
+    for folder in sorted((root / GT).iterdir()):
+        if (folder / "head_pose.npz").exists():
+            arrays = read_head_poses(root, folder.name)
+            offsets.setdefault(folder.name, 0)
+            T = len(arrays["frame_ids"])
+            head_poses[folder.name] = HeadPoses(arrays["T_world_from_hmd"].astype(np.float64),
+                                                arrays["frame_ids"].astype(np.int64), np.ones(T, bool),
+                                                np.zeros(T, np.int64), np.zeros(T))
+    return Calibration(cameras, offsets, head_poses, extras={"source": "ground truth (oracle)"})
