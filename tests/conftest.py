@@ -51,3 +51,11 @@ def oracle_calibration(tiny_capture):
     from egorelight_cli.synth.groundtruth import oracle_calibration as from_groundtruth
 
     return from_groundtruth(tiny_capture)
+
+
+@pytest.fixture(scope="session")
+def oracle_calibration_artifact(tiny_capture, tmp_path_factory) -> Path:
+    """The oracle calibration written as a calibration artifact directory."""
+    from egorelight_cli.synth.groundtruth import write_oracle_calibration
+
+    return write_oracle_calibration(tiny_capture, tmp_path_factory.mktemp("oracle") / "calibration")

@@ -130,3 +130,15 @@ def oracle_calibration(root: str | Path):
                                                 arrays["frame_ids"].astype(np.int64), np.ones(T, bool),
                                                 np.zeros(T, np.int64), np.zeros(T))
     return Calibration(cameras, offsets, head_poses, extras={"source": "ground truth (oracle)"})
+
+
+def write_oracle_calibration(root: str | Path, out: str | Path) -> Path:
+    """Write :func:`oracle_calibration` of capture ``root`` as a calibration artifact at ``out``
+    (marked ``source: ground truth (oracle)`` in its manifest); for tests and evaluation."""
+    from egorelight_cli.artifacts import ArtifactWriter
+    from egorelight_cli.io.calibration import write_calibration
+
+    with ArtifactWriter(out, kind="calibration", stage="oracle", config={"source": "groundtruth"}) as writer:
+        write_calibration(writer.workdir, oracle_calibration(root))
+        writer.extra["source"] = "ground truth (oracle)"
+    return Path(out)
