@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import random
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 import numpy as np
 
@@ -32,3 +34,21 @@ def seed_everything(seed: int) -> np.random.Generator:
     np.random.seed(seed % (2**32))
     torch.manual_seed(seed)
     return np.random.default_rng(seed)
+
+
+@contextmanager
+def single_torch_thread() -> Iterator[None]:
+    """Run torch ops (camera unprojection) on one intra-op thread, restoring the setting after.
+
+    The unprojection of a camera's pixel grid takes ~20 ms single-threaded, but with torch's
+    default thread pool on a loaded CPU (other processes, Embree's threads) its many small
+    parallel regions were measured 10-100x slower (up to seconds per view).
+    """
+    import torch
+
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(previous)

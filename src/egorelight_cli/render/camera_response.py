@@ -31,7 +31,7 @@ from egorelight_cli.errors import EgorelightError
 from egorelight_cli.geometry.cameras import Camera, pixel_grid, unproject_to_rays
 from egorelight_cli.geometry.equirect import check_envmap, sample_equirect, yaw_rotation
 from egorelight_cli.io.images import linear_to_srgb, srgb_to_linear
-from egorelight_cli.render.shading import single_torch_thread
+from egorelight_cli.runtime import single_torch_thread
 
 
 @dataclass(eq=False)

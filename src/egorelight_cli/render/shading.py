@@ -42,8 +42,7 @@ their UV islands by the producer: bilinear lookups near seams read neighbouring 
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator, Mapping
-from contextlib import contextmanager
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -61,6 +60,7 @@ from egorelight_cli.render.raster import (
     uv_to_texel_coords,
     vertex_normals,
 )
+from egorelight_cli.runtime import single_torch_thread
 
 #: Offset (metres) of shadow-ray origins from the surface, along the normal towards the light.
 SHADOW_EPS = 1e-3
@@ -72,22 +72,6 @@ _CHUNK_PIXELS = 4096
 #: Shadow rays per Embree call in :func:`light_visibility`.
 _CHUNK_RAYS = 1 << 20
 _REMAP_COLUMNS = 1024  # cv2.remap maps must stay below SHRT_MAX rows and columns
-
-
-@contextmanager
-def single_torch_thread() -> Iterator[None]:
-    """Run torch ops (camera unprojection) on one intra-op thread, restoring the setting after.
-
-    The unprojection of a camera's pixel grid takes ~20 ms single-threaded, but with torch's
-    default thread pool on a loaded CPU (other processes, Embree's threads) its many small
-    parallel regions were measured 10-100x slower (up to seconds per view).
-    """
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(previous)
 
 
 # --------------------------------------------------------------------------------------------
