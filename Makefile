@@ -64,6 +64,68 @@ $(SUBJECT)/motion/$(SEQ)/manifest.json: $(SUBJECT)/keypoints/$(SEQ)/manifest.jso
 	$(EGO) $(EGOFLAGS) ik --in $(SUBJECT)/keypoints/$(SEQ) --character $(SUBJECT)/character \
 		--model $(SUBJECT)/models/ik $(if $(IK_GT),--gt $(IK_GT)) --out $(SUBJECT)/motion/$(SEQ)
 
+# ---------------------------------------------------------------- egopose (Sec. egocentric pose estimator)
+EGOPOSE_MODEL := $(SUBJECT)/models/egopose/manifest.json
+EGOPOSE_INPUTS := --capture $(SUBJECT)/capture --calibration $(SUBJECT)/calibration
+
+$(EGOPOSE_MODEL): $(CAPTURE) $(SUBJECT)/calibration/manifest.json
+	$(EGO) $(EGOFLAGS) train egopose $(EGOPOSE_INPUTS) --out $(SUBJECT)/models/egopose
+
+# the paper's ablation: the same estimator trained without colour jitter
+$(SUBJECT)/models/egopose_nojitter/manifest.json: $(CAPTURE) $(SUBJECT)/calibration/manifest.json
+	$(EGO) $(EGOFLAGS) train egopose --no-jitter $(EGOPOSE_INPUTS) --out $(SUBJECT)/models/egopose_nojitter
+
+$(SUBJECT)/keypoints/$(SEQ)/manifest.json: $(CAPTURE) $(SUBJECT)/calibration/manifest.json $(EGOPOSE_MODEL)
+	$(EGO) $(EGOFLAGS) egopose $(EGOPOSE_INPUTS) --model $(SUBJECT)/models/egopose --sequence $(SEQ) \
+		--out $(SUBJECT)/keypoints/$(SEQ)
+
+.PHONY: egopose-ablation
+egopose-ablation: $(EGOPOSE_MODEL) $(SUBJECT)/models/egopose_nojitter/manifest.json
+	@$(BIN)/python -c 'import json,sys; [print(p, {k: v for k, v in json.load(open(p))["metrics"].items() if k.startswith("test_") and "mpjpe" in k}) for p in sys.argv[1:]]' $^
+
+# ---------------------------------------------------------------- animate (Sec. depth-conditioned animatable avatar)
+# Trained on ANIMATE_TRAIN_SEQ's motion + point cloud (build them with `make SEQ=ego_train ...`);
+# the depth-agnostic student is fine-tuned with xi = 0 on the flat-lit frames of relight_train.
+ANIMATE_MODEL := $(SUBJECT)/models/animate/manifest.json
+ANIMATE_TRAIN_SEQ ?= ego_train
+ANIMATE_STUDENT_SEQ ?= relight_train
+
+$(ANIMATE_MODEL): $(CAPTURE) $(CHARACTER) $(SUBJECT)/motion/$(ANIMATE_TRAIN_SEQ)/manifest.json \
+		$(SUBJECT)/pointcloud/$(ANIMATE_TRAIN_SEQ)/manifest.json
+	$(EGO) $(EGOFLAGS) train animate --capture $(SUBJECT)/capture --seq $(ANIMATE_TRAIN_SEQ) \
+		--motion $(SUBJECT)/motion/$(ANIMATE_TRAIN_SEQ) --pointcloud $(SUBJECT)/pointcloud/$(ANIMATE_TRAIN_SEQ) \
+		--character $(SUBJECT)/character --out $(SUBJECT)/models/animate
+
+$(SUBJECT)/models/animate_student/manifest.json: $(ANIMATE_MODEL) $(SUBJECT)/motion/$(ANIMATE_STUDENT_SEQ)/manifest.json
+	$(EGO) $(EGOFLAGS) train animate --no-depth --init $(SUBJECT)/models/animate --capture $(SUBJECT)/capture \
+		--seq $(ANIMATE_STUDENT_SEQ) --motion $(SUBJECT)/motion/$(ANIMATE_STUDENT_SEQ) \
+		--character $(SUBJECT)/character --out $(SUBJECT)/models/animate_student
+
+$(SUBJECT)/meshes/$(SEQ)/manifest.json: $(SUBJECT)/motion/$(SEQ)/manifest.json $(SUBJECT)/pointcloud/$(SEQ)/manifest.json \
+		$(ANIMATE_MODEL) $(CHARACTER) $(SUBJECT)/calibration/manifest.json
+	$(EGO) $(EGOFLAGS) animate --motion $(SUBJECT)/motion/$(SEQ) --pointcloud $(SUBJECT)/pointcloud/$(SEQ) \
+		--model $(SUBJECT)/models/animate --character $(SUBJECT)/character --capture $(SUBJECT)/capture \
+		--seq $(SEQ) --calibration $(SUBJECT)/calibration --out $(SUBJECT)/meshes/$(SEQ)
+
+# ---------------------------------------------------------------- egodepth (Sec. egocentric depth estimator)
+# EGODEPTH_METHOD=sgbm gives the classical stereo baseline instead of the trained network.
+EGODEPTH_MODEL := $(SUBJECT)/models/egodepth/manifest.json
+EGODEPTH_METHOD ?= net
+EGODEPTH_INPUTS := --capture $(SUBJECT)/capture --calibration $(SUBJECT)/calibration
+
+$(EGODEPTH_MODEL): $(CAPTURE) $(SUBJECT)/calibration/manifest.json
+	$(EGO) $(EGOFLAGS) train egodepth $(EGODEPTH_INPUTS) --out $(SUBJECT)/models/egodepth
+
+$(SUBJECT)/pointcloud/$(SEQ)/manifest.json: $(CAPTURE) $(SUBJECT)/calibration/manifest.json $(EGODEPTH_MODEL)
+	$(EGO) $(EGOFLAGS) egodepth $(EGODEPTH_INPUTS) --model $(SUBJECT)/models/egodepth --method $(EGODEPTH_METHOD) \
+		--seq $(SEQ) --out $(SUBJECT)/pointcloud/$(SEQ)
+
+# ---------------------------------------------------------------- calibrate
+CALIBRATION := $(SUBJECT)/calibration/manifest.json
+
+$(SUBJECT)/calibration/manifest.json: $(CAPTURE)
+	$(EGO) $(EGOFLAGS) calibrate --capture $(SUBJECT)/capture --out $(SUBJECT)/calibration
+
 subject: $(CAPTURE) $(CHARACTER) $(PREVIEWS)/character.png
 
 demo: subject

@@ -17,6 +17,7 @@ import pytest
 from egorelight_cli.artifacts import open_artifact
 from egorelight_cli.cli import main
 from egorelight_cli.geometry.cameras import Camera, invert_rigid, project_world
+from egorelight_cli.geometry.markers import aruco_dictionary, charuco_board
 from egorelight_cli.io.exr import read_exr
 from egorelight_cli.io.images import read_image, srgb_to_linear
 from egorelight_cli.io.keypoints import load_keypoints
@@ -24,9 +25,8 @@ from egorelight_cli.io.meshes import read_mesh
 from egorelight_cli.io.motion import load_motion
 from egorelight_cli.io.npz import read_npz
 from egorelight_cli.render.envmaps import make_envmap, write_envmap
-from egorelight_cli.synth.hmd import EGO_ROLES, aruco_dictionary
+from egorelight_cli.synth.hmd import EGO_ROLES
 from egorelight_cli.synth.preview import tonemap
-from egorelight_cli.synth.rig import charuco_board
 from egorelight_cli.synth.sequences import SEQUENCES
 from egorelight_cli.synth.tracker import interpolate_poses
 

@@ -235,6 +235,152 @@ def train_ik(ctx: click.Context, motions: tuple[Path, ...], character: str, out:
     _ik_commands(ctx).train(motions, character, out)
 
 
+# ------------------------------------------------------------------------------ egopose, train
+def _egopose_commands(ctx: click.Context, no_jitter: bool = False):
+    from egorelight_cli.stages.egopose_commands import EgoPoseCommands
+
+    if no_jitter:  # a config key, so it enters the cache key and the manifest
+        _options(ctx).sets.append("train.colour_jitter=false")
+    return EgoPoseCommands(_stage_run(ctx, "egopose"))
+
+
+@cli.command("egopose")
+@click.option("--capture", "capture", required=True, type=click.Path(path_type=Path), help="Capture directory.")
+@click.option("--calibration", required=True, type=click.Path(path_type=Path), help="Calibration artifact.")
+@click.option("--model", "model_path", required=True, type=click.Path(path_type=Path), help="egopose model (train egopose).")
+@click.option("--sequence", default="test", show_default=True, help="Sequence to estimate (wild: tracker head poses).")
+@click.option("--out", required=True, type=click.Path(path_type=Path), help="Keypoints artifact directory (or .npz file).")
+@common_options
+@click.pass_context
+def egopose_command(ctx: click.Context, capture: Path, calibration: Path, model_path: Path, sequence: str,
+                    out: Path) -> None:
+    """Stereo down-facing fisheye images + head pose -> 57 world keypoints per frame."""
+    _egopose_commands(ctx).egopose(capture, calibration, model_path, sequence, out)
+
+
+@train_group.command("egopose")
+@click.option("--capture", "capture", required=True, type=click.Path(path_type=Path), help="Capture directory.")
+@click.option("--calibration", required=True, type=click.Path(path_type=Path), help="Calibration artifact.")
+@click.option("--out", required=True, type=click.Path(path_type=Path), help="Model artifact directory.")
+@click.option("--sequence", default=None, help="Training sequence with mocap (default: ego_train).")
+@click.option("--no-jitter", is_flag=True, help="Train without colour jitter (the paper's ablation).")
+@click.option("--backbone-weights", type=click.Path(path_type=Path), default=None,
+              help="Pretrained encoder weights (torch state dict); default: train from scratch.")
+@click.option("--resume", is_flag=True, help="Continue an interrupted training run from its checkpoint.")
+@common_options
+@click.pass_context
+def train_egopose(ctx: click.Context, capture: Path, calibration: Path, out: Path, sequence: str | None,
+                  no_jitter: bool, backbone_weights: Path | None, resume: bool) -> None:
+    """Fit the egocentric pose estimator to a person's ego_train sequence and its mocap."""
+    _egopose_commands(ctx, no_jitter).train(capture, calibration, out, sequence, backbone_weights, resume)
+
+
+# ------------------------------------------------------------------------------ egodepth
+def _egodepth_commands(ctx: click.Context):
+    from egorelight_cli.stages.egodepth_commands import EgodepthCommands
+
+    return EgodepthCommands(_stage_run(ctx, "egodepth"))
+
+
+@train_group.command("egodepth")
+@click.option("--capture", "capture", required=True, type=click.Path(path_type=Path), help="Capture artifact.")
+@click.option("--calibration", required=True, type=click.Path(path_type=Path), help="Calibration artifact.")
+@click.option("--backbone", type=click.Path(path_type=Path, file_okay=False), default=None,
+              help="Local Depth-Anything-V2 folder (transformers format) used as an input prior.")
+@click.option("--out", required=True, type=click.Path(path_type=Path), help="Model artifact directory.")
+@common_options
+@click.pass_context
+def train_egodepth(ctx: click.Context, capture: Path, calibration: Path, backbone: Path | None, out: Path) -> None:
+    """Fit the depth network to the ego_train sequences, supervised by the reconstructions."""
+    _egodepth_commands(ctx).train(capture, calibration, out, backbone)
+
+
+@cli.command("egodepth")
+@click.option("--capture", "capture", required=True, type=click.Path(path_type=Path), help="Capture artifact.")
+@click.option("--calibration", required=True, type=click.Path(path_type=Path), help="Calibration artifact.")
+@click.option("--model", "model_path", type=click.Path(path_type=Path), default=None,
+              help="egodepth model (train egodepth); needed by --method net.")
+@click.option("--method", type=click.Choice(["net", "sgbm"]), default=None, help="net (default) or sgbm (stereo baseline).")
+@click.option("--backbone", type=click.Path(path_type=Path, file_okay=False), default=None,
+              help="Depth-Anything-V2 folder, when the model was trained with one.")
+@click.option("--seq", "--sequence", "seq", default="test", show_default=True, help="Sequence name.")
+@click.option("--out", required=True, type=click.Path(path_type=Path), help="Pointcloud artifact directory.")
+@common_options
+@click.pass_context
+def egodepth_command(ctx: click.Context, capture: Path, calibration: Path, model_path: Path | None, method: str | None,
+                     backbone: Path | None, seq: str, out: Path) -> None:
+    """Ego fisheye images -> metric depth per view -> fused world point cloud with normals."""
+    if method is not None:  # a config key, so it enters the cache key and the manifest
+        _options(ctx).sets.append(f"predict.method={method}")
+    _egodepth_commands(ctx).predict(capture, calibration, model_path, seq, out, method, backbone)
+
+
+# ------------------------------------------------------------------------------- animate
+def _animate_commands(ctx: click.Context):
+    from egorelight_cli.stages.animate_commands import AnimateCommands
+
+    return AnimateCommands(_stage_run(ctx, "animate"))
+
+
+@train_group.command("animate")
+@click.option("--capture", required=True, type=click.Path(path_type=Path), help="Capture (its recon/ is the target).")
+@click.option("--seq", default="ego_train", show_default=True, help="Training sequence.")
+@click.option("--motion", "motion_path", required=True, type=click.Path(path_type=Path), help="Motion of that sequence.")
+@click.option("--pointcloud", "pointcloud_path", type=click.Path(path_type=Path), default=None,
+              help="Pointcloud of that sequence (egodepth); not needed with --no-depth.")
+@click.option("--character", default="default", show_default=True, help="Character artifact, .npz, .character or 'default'.")
+@click.option("--init", "init_path", type=click.Path(path_type=Path), default=None,
+              help="Start from this animate model (e.g. the depth-agnostic student).")
+@click.option("--no-depth", is_flag=True, help="Train with xi = 0 (depth-agnostic student).")
+@click.option("--out", required=True, type=click.Path(path_type=Path), help="Model artifact directory.")
+@common_options
+@click.pass_context
+def train_animate(ctx: click.Context, capture: Path, seq: str, motion_path: Path, pointcloud_path: Path | None,
+                  character: str, init_path: Path | None, no_depth: bool, out: Path) -> None:
+    """Fit AnimationNet to a sequence's multi-view reconstructions (normal-filtered Chamfer + ARAP + offset terms)."""
+    _animate_commands(ctx).train(capture, seq, motion_path, pointcloud_path, character, init_path, no_depth, out)
+
+
+@cli.command("animate")
+@click.option("--motion", "motion_path", required=True, type=click.Path(path_type=Path), help="Motion artifact (ik).")
+@click.option("--pointcloud", "pointcloud_path", type=click.Path(path_type=Path), default=None,
+              help="Pointcloud artifact (egodepth); not needed with --no-depth.")
+@click.option("--model", "model_path", required=True, type=click.Path(path_type=Path), help="animate model (train animate).")
+@click.option("--character", default="default", show_default=True, help="Character artifact, .npz, .character or 'default'.")
+@click.option("--capture", type=click.Path(path_type=Path), default=None,
+              help="Capture: scores against its groundtruth/ when present; ego images for the preview.")
+@click.option("--seq", default="test", show_default=True, help="Sequence name (ground truth, ego images).")
+@click.option("--calibration", type=click.Path(path_type=Path), default=None,
+              help="Calibration artifact: draws the meshes over the ego images in the preview.")
+@click.option("--no-depth", is_flag=True, help="Motion-only ablation (xi = 0).")
+@click.option("--export", type=click.Choice(["none", "ply", "obj"]), default=None,
+              help="Also write one mesh file per frame under export/.")
+@click.option("--out", required=True, type=click.Path(path_type=Path), help="Meshes artifact directory (or .npz file).")
+@common_options
+@click.pass_context
+def animate_command(ctx: click.Context, motion_path: Path, pointcloud_path: Path | None, model_path: Path, character: str,
+                    capture: Path | None, seq: str, calibration: Path | None, no_depth: bool, export: str | None,
+                    out: Path) -> None:
+    """Motion + ego point cloud -> tracked clothed mesh sequence (embedded graph + offsets, DQS)."""
+    if export is not None:  # a config key, so it enters the cache key and the manifest
+        _options(ctx).sets.append(f"export={export}")
+    _animate_commands(ctx).animate(motion_path, pointcloud_path, model_path, character, capture, seq, calibration,
+                                   no_depth, export, out)
+
+
+# ---------------------------------------------------------------------------------- calibrate
+@cli.command("calibrate")
+@click.option("--capture", "capture_path", required=True, type=click.Path(path_type=Path), help="Capture artifact.")
+@click.option("--out", required=True, type=click.Path(path_type=Path, file_okay=False), help="Calibration directory.")
+@common_options
+@click.pass_context
+def calibrate_command(ctx: click.Context, capture_path: Path, out: Path) -> None:
+    """ArUco head tracking, hand-eye calibration, stream sync and in-the-wild trajectory alignment."""
+    from egorelight_cli.stages.calibrate import CalibrateCommand
+
+    CalibrateCommand(_stage_run(ctx, "calibrate"))(capture_path, out)
+
+
 # ------------------------------------------------------------------------------- entry point
 def main(argv: list[str] | None = None) -> None:
     """Console-script entry: maps failures to one line and an exit code."""

@@ -28,6 +28,15 @@ def linear_to_srgb(linear: np.ndarray) -> np.ndarray:
     return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055).astype(np.float32)
 
 
+def tonemap(hdr: np.ndarray, mask: np.ndarray | None = None, percentile: float = 99.0) -> np.ndarray:
+    """(H,W,3) uint8 sRGB of a linear HDR image scaled so the ``percentile`` (of the mask) is ~0.9."""
+    values = hdr.max(axis=-1)
+    values = values[mask] if mask is not None and mask.any() else values
+    level = float(np.percentile(values, percentile)) if values.size else 0.0
+    scale = 0.9 / level if level > 1e-8 else 1.0
+    return np.round(linear_to_srgb(hdr * scale) * 255).astype(np.uint8)
+
+
 def read_image(path: str | Path) -> np.ndarray:
     """Read a PNG/JPEG as stored: uint8 or uint16, (H,W) grey or (H,W,3|4) RGB(A)."""
     path = Path(path)

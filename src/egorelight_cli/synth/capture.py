@@ -60,6 +60,7 @@ from egorelight_cli.artifacts import ArtifactWriter
 from egorelight_cli.config import Config
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.geometry.cameras import Camera
+from egorelight_cli.geometry.markers import detect_board, detect_hmd_markers
 from egorelight_cli.geometry.raycast import RayCaster
 from egorelight_cli.geometry.skeleton import keypoint_positions
 from egorelight_cli.io.exr import write_exr_layers
@@ -79,7 +80,6 @@ from egorelight_cli.synth.hmd import (
     EGO_ROLES,
     FRONT_ROLES,
     Hmd,
-    detect_hmd_markers,
     make_hmd,
 )
 from egorelight_cli.synth.preview import contact_sheet, tonemap
@@ -88,7 +88,6 @@ from egorelight_cli.synth.rig import (
     board_json,
     board_mesh,
     board_pose,
-    detect_board,
     held_out_cameras,
     make_lightstage,
     studio_cameras,

@@ -24,6 +24,7 @@ import torch
 
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.geometry.cameras import Camera, invert_rigid
+from egorelight_cli.geometry.markers import aruco_dictionary
 from egorelight_cli.geometry.skeleton import forward_kinematics, keypoint_positions
 from egorelight_cli.structures.character import Character
 from egorelight_cli.synth.textures import TexturedMesh, grid_quad
@@ -122,10 +123,6 @@ class Hmd:
 
 
 # --------------------------------------------------------------------------------- construction
-def aruco_dictionary(name: str = MARKER_DICTIONARY):
-    return cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name))
-
-
 def head_joint_index(character: Character) -> int:
     """The joint the HMD is attached to: the last joint of the head chain (``Head_rx`` here)."""
     names = character.skeleton.joint_names
@@ -359,9 +356,3 @@ def make_hmd(character: Character, cfg, seed: int) -> Hmd:
     return Hmd(mesh=mesh, cameras=cameras, markers=markers, marker_length=marker_length,
                head_joint=head_joint, T_joint_from_hmd=T_joint_from_hmd)
 
-
-def detect_hmd_markers(image: np.ndarray) -> np.ndarray:
-    """Ids of the HMD markers OpenCV detects in an 8-bit RGB or grey image."""
-    grey = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY) if image.ndim == 3 else image
-    _, ids, _ = cv2.aruco.ArucoDetector(aruco_dictionary()).detectMarkers(grey)
-    return np.zeros(0, dtype=np.int64) if ids is None else ids.ravel().astype(np.int64)

@@ -5,18 +5,9 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from egorelight_cli.io.images import linear_to_srgb
+from egorelight_cli.io.images import tonemap  # noqa: F401  (re-exported: synth.capture, tests)
 
 TILE_HEIGHT = 160
-
-
-def tonemap(hdr: np.ndarray, mask: np.ndarray | None = None, percentile: float = 99.0) -> np.ndarray:
-    """(H,W,3) uint8 sRGB of a linear HDR image scaled so the ``percentile`` (of the mask) is ~0.9."""
-    values = hdr.max(axis=-1)
-    values = values[mask] if mask is not None and mask.any() else values
-    level = float(np.percentile(values, percentile)) if values.size else 0.0
-    scale = 0.9 / level if level > 1e-8 else 1.0
-    return np.round(linear_to_srgb(hdr * scale) * 255).astype(np.uint8)
 
 
 def _fit(image: np.ndarray, height: int = TILE_HEIGHT) -> np.ndarray:

@@ -15,10 +15,10 @@ from __future__ import annotations
 
 import math
 
-import cv2
 import numpy as np
 
 from egorelight_cli.geometry.cameras import Camera, look_at
+from egorelight_cli.geometry.markers import charuco_board
 from egorelight_cli.render.lightstage import LightStage
 from egorelight_cli.synth.textures import TexturedMesh, grid_quad
 
@@ -89,12 +89,6 @@ def make_lightstage(cfg, seed: int) -> LightStage:
 
 
 # ---------------------------------------------------------------------------------------- board
-def charuco_board(cfg):
-    dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, BOARD_DICTIONARY))
-    return cv2.aruco.CharucoBoard((int(cfg.squares_x), int(cfg.squares_y)), float(cfg.square_length_m),
-                                  float(cfg.marker_length_m), dictionary)
-
-
 def board_json(cfg) -> dict:
     """``rig/board.json``: the ChArUco board definition (its pose is not part of the rig)."""
     return {"type": "charuco", "squares_x": int(cfg.squares_x), "squares_y": int(cfg.squares_y),
@@ -143,9 +137,3 @@ def board_pose(cfg, head_position: np.ndarray, forward: np.ndarray, seed: int) -
     T[:3, 3] = centre - x * width / 2 - y * height / 2
     return T
 
-
-def detect_board(image: np.ndarray, cfg) -> int:
-    """Number of ChArUco corners OpenCV finds in an 8-bit RGB or grey image."""
-    grey = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY) if image.ndim == 3 else image
-    corners, _, _, _ = cv2.aruco.CharucoDetector(charuco_board(cfg)).detectBoard(grey)
-    return 0 if corners is None else len(corners)

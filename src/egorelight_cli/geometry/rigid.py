@@ -1,0 +1,64 @@
+"""Small numpy helpers for rigid transforms (4,4) and rotations (3,3), float64, metres.
+
+Parameter vectors are ``(rx, ry, rz, tx, ty, tz)``: a rotation vector (radians) and a translation.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+
+def rigid_from_vector(v) -> np.ndarray:
+    """(4,4) rigid transform from a 6-vector (rotation vector, translation); (...,6) -> (...,4,4)."""
+    v = np.asarray(v, dtype=np.float64)
+    T = np.zeros(v.shape[:-1] + (4, 4))
+    T[..., :3, :3] = Rotation.from_rotvec(v[..., :3].reshape(-1, 3)).as_matrix().reshape(v.shape[:-1] + (3, 3))
+    T[..., :3, 3] = v[..., 3:]
+    T[..., 3, 3] = 1.0
+    return T
+
+
+def vector_from_rigid(T) -> np.ndarray:
+    """6-vector (rotation vector, translation) of rigid transforms (...,4,4) -> (...,6)."""
+    T = np.asarray(T, dtype=np.float64)
+    rot = Rotation.from_matrix(T[..., :3, :3].reshape(-1, 3, 3)).as_rotvec().reshape(T.shape[:-2] + (3,))
+    return np.concatenate([rot, T[..., :3, 3]], axis=-1)
+
+
+def rigid(R, t) -> np.ndarray:
+    """(4,4) from a rotation (3,3) and a translation (3,)."""
+    T = np.eye(4)
+    T[:3, :3] = np.asarray(R, np.float64)
+    T[:3, 3] = np.asarray(t, np.float64).reshape(3)
+    return T
+
+
+def rotation_angle_deg(R_a, R_b) -> np.ndarray:
+    """Angle (degrees) of ``R_a^T R_b`` for rotations (...,3,3)."""
+    R = np.swapaxes(np.asarray(R_a, np.float64), -1, -2) @ np.asarray(R_b, np.float64)
+    cos = (np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
+def project_to_rotation(M) -> np.ndarray:
+    """The closest rotation (3,3) to a 3x3 matrix (SVD, determinant +1)."""
+    U, _, Vt = np.linalg.svd(np.asarray(M, np.float64))
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    return U @ D @ Vt
+
+
+def mean_rotation(Rs) -> np.ndarray:
+    """Chordal L2 mean of rotations (N,3,3)."""
+    return project_to_rotation(np.sum(np.asarray(Rs, np.float64), axis=0))
+
+
+def kabsch(source, target, weights=None) -> np.ndarray:
+    """(4,4) rigid ``T`` minimising ``sum w |T source_i - target_i|^2`` for points (N,3), N >= 3."""
+    P, Q = np.asarray(source, np.float64), np.asarray(target, np.float64)
+    w = np.ones(len(P)) if weights is None else np.asarray(weights, np.float64)
+    w = w / w.sum()
+    mp, mq = w @ P, w @ Q
+    H = ((P - mp) * w[:, None]).T @ (Q - mq)
+    R = project_to_rotation(H.T)
+    return rigid(R, mq - R @ mp)

@@ -1,0 +1,162 @@
+"""The ``meshes`` artifact payload: a tracked mesh sequence and the controls that made it.
+
+``meshes.npz`` (same layout as the simulator's ``groundtruth/<seq>/meshes.npz``):
+
+* ``vertices`` (T,V,3) float32 posed vertices, world metres;
+* ``faces`` (F,3) int32 (the character's template triangles);
+* ``theta`` (T,D) float32 skeleton DoFs;
+* ``eg_rotation`` (T,N,3) float32 embedded-graph Euler angles alpha (rx, ry, rz), radians;
+* ``eg_translation`` (T,N,3) float32 embedded-graph translations beta, canonical metres;
+* ``offsets`` (T,V,3) float32 per-vertex canonical offsets o, metres (zeros when absent, as in
+  the simulator's ground truth);
+* ``frame_ids`` (T,) int64 master-clock (studio) frame ids, strictly increasing;
+* optional ``ego_frame_ids`` (T,) int64.
+
+A meshes artifact is a directory with ``manifest.json`` + ``meshes.npz`` (+ previews, and
+``export/`` PLY/OBJ files when asked for), or a single ``.npz`` with its sidecar; a lone
+self-describing ``meshes.npz`` (e.g. the ground truth) is read too.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from egorelight_cli.errors import EgorelightError
+from egorelight_cli.io.keypoints import resolve_payload
+from egorelight_cli.io.npz import read_kind_npz, write_npz
+
+MESHES_KIND = "egorelight/meshes"
+MESHES_VERSION = 1
+MESHES_PAYLOAD = "meshes.npz"
+MESHES_UNITS = {"vertices": "m", "eg_rotation": "rad", "eg_translation": "m", "offsets": "m",
+                "theta": "rad (revolute DoFs) | m (prismatic DoFs)"}
+
+
+@dataclass(frozen=True, eq=False)
+class MeshSequence:
+    """A mesh sequence (shapes in the module docstring); arrays are validated and cast."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    theta: np.ndarray
+    eg_rotation: np.ndarray
+    eg_translation: np.ndarray
+    offsets: np.ndarray
+    frame_ids: np.ndarray
+    fps: float | None = None
+    ego_frame_ids: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        v = np.ascontiguousarray(self.vertices, dtype=np.float32)
+        if v.ndim != 3 or v.shape[2] != 3:
+            raise EgorelightError(f"meshes vertices have shape {v.shape}, expected (T, V, 3)")
+        T, V = v.shape[:2]
+        f = np.asarray(self.faces)
+        if f.ndim != 2 or f.shape[1] != 3 or not np.issubdtype(f.dtype, np.integer):
+            raise EgorelightError(f"meshes faces have shape {f.shape} and dtype {f.dtype}, expected (F, 3) integers")
+        if f.size and (f.min() < 0 or f.max() >= V):
+            raise EgorelightError(f"meshes faces index vertices out of range (0..{V - 1})")
+        theta = np.asarray(self.theta, dtype=np.float32)
+        rot = np.asarray(self.eg_rotation, dtype=np.float32)
+        trans = np.asarray(self.eg_translation, dtype=np.float32)
+        off = np.asarray(self.offsets, dtype=np.float32)
+        if theta.ndim != 2 or theta.shape[0] != T:
+            raise EgorelightError(f"meshes theta has shape {theta.shape}, expected ({T}, D)")
+        if rot.ndim != 3 or rot.shape[0] != T or rot.shape[2] != 3 or trans.shape != rot.shape:
+            raise EgorelightError(f"meshes eg_rotation/eg_translation have shapes {rot.shape}/{trans.shape}, "
+                                  f"expected ({T}, N, 3) each")
+        if off.shape != v.shape:
+            raise EgorelightError(f"meshes offsets have shape {off.shape}, expected {v.shape}")
+        ids = np.asarray(self.frame_ids)
+        if ids.shape != (T,) or not np.issubdtype(ids.dtype, np.integer):
+            raise EgorelightError(f"meshes frame_ids has shape {ids.shape}, expected ({T},) integers")
+        if T > 1 and np.any(np.diff(ids) <= 0):
+            raise EgorelightError("meshes frame_ids are not strictly increasing")
+        for name, value in (("vertices", v), ("theta", theta), ("eg_rotation", rot), ("eg_translation", trans),
+                            ("offsets", off)):
+            if not np.isfinite(value).all():
+                raise EgorelightError(f"meshes {name} holds NaN or inf values")
+        for name, value in (("vertices", v), ("faces", f.astype(np.int32)), ("theta", theta), ("eg_rotation", rot),
+                            ("eg_translation", trans), ("offsets", off), ("frame_ids", ids.astype(np.int64))):
+            object.__setattr__(self, name, value)
+        if self.ego_frame_ids is not None:
+            object.__setattr__(self, "ego_frame_ids", np.asarray(self.ego_frame_ids, np.int64).reshape(T))
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.vertices.shape[0])
+
+    def index_of(self, frame_id: int) -> int:
+        """Row of ``frame_id``; an error when absent."""
+        rows = np.nonzero(self.frame_ids == int(frame_id))[0]
+        if rows.size == 0:
+            raise EgorelightError(f"meshes have no frame {frame_id}")
+        return int(rows[0])
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        out = {"vertices": self.vertices, "faces": self.faces, "theta": self.theta, "eg_rotation": self.eg_rotation,
+               "eg_translation": self.eg_translation, "offsets": self.offsets, "frame_ids": self.frame_ids}
+        if self.ego_frame_ids is not None:
+            out["ego_frame_ids"] = self.ego_frame_ids
+        return out
+
+
+def write_meshes_npz(path: str | Path, meshes: MeshSequence, **meta) -> None:
+    """Write a self-describing ``meshes.npz`` (outside an artifact writer)."""
+    extra = {"fps": meshes.fps} if meshes.fps is not None else {}
+    write_npz(path, meshes.arrays(), {"kind": MESHES_KIND, "version": MESHES_VERSION, "units": dict(MESHES_UNITS),
+                                      "frame_ids": meshes.frame_ids.tolist(), **extra, **meta})
+
+
+def save_meshes(writer, meshes: MeshSequence, name: str | None = None, **meta) -> Path:
+    """Write ``meshes`` into an :class:`~egorelight_cli.artifacts.ArtifactWriter` (kind meshes)."""
+    name = name or (writer.out.name if writer.single_file else MESHES_PAYLOAD)
+    extra = {"fps": meshes.fps} if meshes.fps is not None else {}
+    return writer.save_npz(name, meshes.arrays(), frame_ids=meshes.frame_ids, units=dict(MESHES_UNITS), **extra, **meta)
+
+
+def read_meshes_npz(path: str | Path) -> MeshSequence:
+    """Read a ``meshes.npz`` (kind and version checked; missing ``offsets`` read as zeros)."""
+    arrays, meta = read_kind_npz(path, MESHES_KIND, MESHES_VERSION)
+    missing = [n for n in ("vertices", "faces", "theta", "eg_rotation", "eg_translation", "frame_ids") if n not in arrays]
+    if missing:
+        raise EgorelightError(f"meshes payload lacks {', '.join(missing)}", path)
+    offsets = arrays.get("offsets")
+    if offsets is None:
+        offsets = np.zeros_like(arrays["vertices"], dtype=np.float32)
+    try:
+        return MeshSequence(arrays["vertices"], arrays["faces"], arrays["theta"], arrays["eg_rotation"],
+                            arrays["eg_translation"], offsets, arrays["frame_ids"], meta.get("fps"),
+                            arrays.get("ego_frame_ids"))
+    except EgorelightError as exc:
+        raise EgorelightError(exc.message, path) from None
+
+
+def load_meshes(path: str | Path):
+    """Load from an artifact directory, a single ``.npz`` (+ sidecar) or a lone self-describing
+    ``.npz``. Returns ``(MeshSequence, Artifact | None)``."""
+    payload, artifact = resolve_payload(path, "meshes", MESHES_PAYLOAD, "meshes")
+    return read_meshes_npz(payload), artifact
+
+
+def export_sequence(folder: str | Path, meshes: MeshSequence, fmt: str = "ply", face_uvs: np.ndarray | None = None) -> list[Path]:
+    """Write one mesh file per frame, ``<folder>/<frame id:06d>.<fmt>`` (``ply`` or ``obj``; OBJ
+    carries the character's face-corner UVs when given)."""
+    from egorelight_cli.io.meshes import write_obj, write_ply
+
+    if fmt not in ("ply", "obj"):
+        raise EgorelightError(f"mesh export format must be ply or obj, got {fmt!r}")
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for fid, v in zip(meshes.frame_ids, meshes.vertices):
+        path = folder / f"{int(fid):06d}.{fmt}"
+        if fmt == "ply":
+            write_ply(path, v, meshes.faces)
+        else:
+            write_obj(path, v, meshes.faces, face_uvs)
+        paths.append(path)
+    return paths

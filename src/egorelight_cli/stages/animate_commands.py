@@ -1,0 +1,390 @@
+"""The ``egorelight animate`` and ``egorelight train animate`` commands: load inputs, call
+:mod:`egorelight_cli.stages.animate`, write artifacts.
+
+``train animate`` reads a capture sequence's multi-view reconstructions (``recon/<frame>.ply``,
+the training target), a motion artifact of that sequence and, unless ``--no-depth``, its
+pointcloud artifact; it writes a model artifact (``model.pt``, ``curve.json``, ``curve.png``).
+``--init MODEL`` starts from a trained model (the paper's depth-agnostic student: ``--no-depth
+--init MODEL --sequence relight_train``, fine-tuned on the flat-lit frames).
+
+``animate`` reads a motion, a point cloud (unless ``--no-depth``) and a model and writes a
+meshes artifact (``meshes.npz``, see :mod:`egorelight_cli.io.mesh_sequence`), ``preview.png``
+and, with ``--export ply|obj``, one mesh file per frame under ``export/``. With ``--capture``
+(and the capture has ``groundtruth/``), the manifest's metrics hold the point-to-surface
+distance (cm) to the true meshes over the full body and over the surface the down-facing ego
+cameras see, for (a) skinning only, (b) the network without depth and (c) with depth.
+``--calibration`` adds the meshes drawn over the ego images to the preview.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from egorelight_cli import console
+from egorelight_cli.artifacts import Artifact, ArtifactWriter
+from egorelight_cli.config import Config
+from egorelight_cli.errors import EgorelightError
+from egorelight_cli.io.capture import Capture
+from egorelight_cli.io.mesh_sequence import MeshSequence, export_sequence, save_meshes
+from egorelight_cli.io.motion import Motion, load_motion
+from egorelight_cli.pipeline import StageRun
+from egorelight_cli.stages.animate import (ANIMATE_MODEL_TYPE, AnimationModel, DepthSettings, NetSettings,
+                                           TrainSettings, build_training_data, evaluate_chamfer, previous_rows,
+                                           train_animation_model)
+from egorelight_cli.structures.character import Character
+
+PREVIEW_PNG = "preview.png"
+EXPORT_DIR = "export"
+
+
+# ---------------------------------------------------------------------------------- inputs
+def _load_motion(path: Path, character: Character) -> tuple[Motion, Artifact | None]:
+    motion, artifact = load_motion(path)
+    motion.check_dofs(character.skeleton.dof_names, path)
+    if motion.num_frames == 0:
+        raise EgorelightError("motion holds no frames", path)
+    return motion, artifact
+
+
+def _load_clouds(path: Path | None, motion: Motion, no_depth: bool) -> tuple[list | None, Artifact | None, int]:
+    """Per motion frame ``(points, normals)`` (None where the cloud lacks the frame), the artifact,
+    and the number of motion frames with a cloud; ``(None, None, 0)`` without depth."""
+    from egorelight_cli.io.pointcloud import load_pointcloud
+
+    if no_depth:
+        if path is not None:
+            console.info("--no-depth: the point cloud is ignored")
+        return None, None, 0
+    if path is None:
+        raise EgorelightError("a point cloud is required (--pointcloud), or run with --no-depth")
+    cloud, artifact = load_pointcloud(path)
+    have = set(int(f) for f in cloud.frame_ids)
+    clouds = [cloud.frame(int(f)) if int(f) in have else None for f in motion.frame_ids]
+    count = sum(c is not None for c in clouds)
+    if count == 0:
+        raise EgorelightError(f"point cloud frames {cloud.frame_ids.min()}..{cloud.frame_ids.max()} share no frame "
+                              f"with the motion ({motion.frame_ids.min()}..{motion.frame_ids.max()})", path)
+    return clouds, artifact, count
+
+
+def load_animate_model(path: Path, character: Character, device) -> tuple[AnimationModel, Artifact, dict]:
+    """Read a model artifact written by ``train animate`` and bind it to ``character``."""
+    from egorelight_cli.artifacts import open_artifact
+    from egorelight_cli.io.model import read_model
+
+    artifact = open_artifact(path, kind="model")
+    if artifact.single_file:
+        raise EgorelightError("an animate model is a directory artifact", path)
+    payload = read_model(artifact.root, stage=ANIMATE_MODEL_TYPE)
+    extra = payload.extra
+    if int(extra.get("num_vertices", -1)) != character.num_vertices or int(extra.get("num_nodes", -1)) != character.graph.num_nodes:
+        raise EgorelightError(f"model was trained for a character with {extra.get('num_vertices')} vertices and "
+                              f"{extra.get('num_nodes')} graph nodes, this one has {character.num_vertices} and "
+                              f"{character.graph.num_nodes}", path)
+    try:
+        net_settings = NetSettings(**payload.architecture)
+    except TypeError as exc:
+        raise EgorelightError(f"animate model architecture is not understood ({exc})", path) from None
+    depth = DepthSettings(float(extra["eps_d"]), float(extra["eps_n"]))
+    net = net_settings.build_net()
+    try:
+        net.load_state_dict(payload.state_dict)
+    except RuntimeError as exc:
+        raise EgorelightError(f"animate model weights do not fit its architecture ({str(exc).splitlines()[0]})", path) from None
+    return AnimationModel(character, net_settings, depth, net, device), artifact, extra
+
+
+def _open_capture(path: Path) -> tuple[Capture, Artifact]:
+    from egorelight_cli.artifacts import open_artifact
+
+    artifact = open_artifact(path, kind="capture")
+    return Capture(artifact.root), artifact
+
+
+def _flat_lit(seq, frame_ids: np.ndarray) -> np.ndarray:
+    """The frames of ``frame_ids`` lit flat (all of them when the sequence lists no lights)."""
+    lights = seq.lights
+    if not lights:
+        return frame_ids
+    pattern = {int(f): str(l.get("pattern", "flat")) for f, l in zip(seq.frame_ids, lights)}
+    return np.array([f for f in frame_ids if pattern.get(int(f), "flat") == "flat"], np.int64)
+
+
+def read_reconstructions(seq, frame_ids: np.ndarray) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    """Frame id -> (vertices, faces) of the multi-view reconstructions that exist."""
+    from egorelight_cli.io.meshes import read_mesh
+
+    out = {}
+    for f in frame_ids:
+        path = seq.recon_path(int(f))
+        if path.is_file():
+            v, faces = read_mesh(path)
+            if not np.isfinite(v).all():
+                raise EgorelightError("reconstruction holds NaN or inf vertices", path)
+            out[int(f)] = (v, faces)
+    return out
+
+
+@dataclass(frozen=True)
+class AnimateCommands:
+    """``animate`` and ``train animate`` over one :class:`StageRun` (the global options)."""
+
+    run: StageRun
+
+    def _device(self):
+        from egorelight_cli.runtime import resolve_device
+
+        return resolve_device(self.run.device)
+
+    # ------------------------------------------------------------------------------ train
+    def train(self, capture_path: Path, sequence: str, motion_path: Path, pointcloud_path: Path | None,
+              character_spec: str, init_path: Path | None, no_depth: bool, out: Path) -> Path:
+        from egorelight_cli.stages.character_commands import load_character
+        from egorelight_cli.stages.ik_commands import character_sources
+
+        character, character_artifact = load_character(character_spec)
+        capture, capture_artifact = _open_capture(capture_path)
+        seq = capture.sequence(sequence)
+        seq.require_stream("recon")
+        motion, motion_artifact = _load_motion(motion_path, character)
+        clouds, cloud_artifact, cloud_frames = _load_clouds(pointcloud_path, motion, no_depth)
+        cfg = self.run.config()
+        frames = np.intersect1d(motion.frame_ids, seq.content_frame_ids)
+        if bool(cfg["train"]["flat_lit_only"]):
+            frames = _flat_lit(seq, frames)
+        recon = read_reconstructions(seq, frames)
+        if not recon:
+            raise EgorelightError(f"no frame of the motion ({motion.frame_ids.min()}..{motion.frame_ids.max()}) has a "
+                                  f"flat-lit multi-view reconstruction in sequence {sequence!r}", seq.root / "recon")
+        inputs = [a for a in (capture_artifact, character_artifact, motion_artifact, cloud_artifact) if a is not None]
+        sources = character_sources(character_spec, character_artifact) + [seq.recon_path(f) for f in sorted(recon)]
+        sources += [p for p, a in ((motion_path, motion_artifact), (pointcloud_path, cloud_artifact))
+                    if a is None and p is not None and not no_depth]
+        init = None
+        if init_path is not None:
+            init, init_artifact, _ = load_animate_model(init_path, character, self._device())
+            inputs.append(init_artifact)
+        device = self._device()
+
+        def write(writer: ArtifactWriter, cfg: Config) -> None:
+            from egorelight_cli.io.model import ModelPayload, write_model
+
+            if writer.single_file:
+                raise EgorelightError("an animate model is a directory artifact: give --out a directory name", out)
+            settings = TrainSettings.from_config(cfg)
+            torch.manual_seed(settings.seed)
+            model = init or AnimationModel(character, NetSettings.from_config(cfg), DepthSettings.from_config(cfg),
+                                           device=device)
+            data = build_training_data(model, motion.theta, motion.frame_ids, clouds, recon, settings)
+            before = evaluate_chamfer(model, data, settings, no_depth=no_depth)
+            checkpoint = out.parent / f".{out.name}.checkpoint.pt"
+            curve = train_animation_model(model, data, settings, no_depth=no_depth, checkpoint=checkpoint)
+            after = evaluate_chamfer(model, data, settings, no_depth=no_depth)
+            checkpoint.unlink(missing_ok=True)
+            extra = {"eps_d": model.depth.eps_d, "eps_n": model.depth.eps_n, "num_vertices": character.num_vertices,
+                     "num_nodes": character.graph.num_nodes, "no_depth": bool(no_depth), "sequence": sequence,
+                     "frames": [int(f) for f in data.frame_ids], "init": str(init_path) if init_path else None}
+            write_model(writer.workdir, ModelPayload(ANIMATE_MODEL_TYPE, model.settings.to_dict(),
+                                                     model.net.state_dict(), extra, curve),
+                        curve_title="train animate: loss terms")
+            writer.metrics.update({"training_frames": int(len(data.frame_ids)), "steps": settings.steps,
+                                   "no_depth": bool(no_depth), "frames_with_cloud": cloud_frames,
+                                   "train_chamfer_cm_before": before, "train_chamfer_cm_after": after,
+                                   "final_loss": curve[-1]["loss"] if curve else None})
+            writer.units.update({"train_chamfer_cm": "cm (normal-filtered two-sided Chamfer, full mesh)"})
+
+        return self.run.produce(out, "model", write, inputs=inputs, source_files=sources)
+
+    # ----------------------------------------------------------------------------- animate
+    def animate(self, motion_path: Path, pointcloud_path: Path | None, model_path: Path, character_spec: str,
+                capture_path: Path | None, sequence: str, calibration_path: Path | None, no_depth: bool,
+                export: str | None, out: Path) -> Path:
+        from egorelight_cli.stages.character_commands import load_character
+        from egorelight_cli.stages.ik_commands import character_sources
+
+        character, character_artifact = load_character(character_spec)
+        motion, motion_artifact = _load_motion(motion_path, character)
+        clouds, cloud_artifact, cloud_frames = _load_clouds(pointcloud_path, motion, no_depth)
+        model, model_artifact, _ = load_animate_model(model_path, character, self._device())
+        capture, capture_artifact = _open_capture(capture_path) if capture_path is not None else (None, None)
+        calibration = calibration_artifact = None
+        if calibration_path is not None:
+            from egorelight_cli.artifacts import open_artifact
+            from egorelight_cli.io.calibration import read_calibration
+
+            calibration_artifact = open_artifact(calibration_path, kind="calibration")
+            calibration = read_calibration(calibration_artifact.root)
+        inputs = [a for a in (character_artifact, motion_artifact, cloud_artifact, model_artifact, capture_artifact,
+                              calibration_artifact) if a is not None]
+        sources = character_sources(character_spec, character_artifact)
+        sources += [p for p, a in ((motion_path, motion_artifact), (pointcloud_path, cloud_artifact))
+                    if a is None and p is not None and not no_depth]
+
+        def write(writer: ArtifactWriter, cfg: Config) -> None:
+            import time
+
+            started = time.perf_counter()
+            uv_inputs, xi_mask, template = model.uv_inputs(motion.theta, previous_rows(motion.frame_ids), clouds)
+            meshes = model.mesh_sequence(uv_inputs, motion.theta, motion.frame_ids, motion.fps)
+            elapsed = time.perf_counter() - started
+            save_meshes(writer, meshes, name=None, source="animate", no_depth=bool(no_depth))
+            writer.timing["frames_per_s"] = round(motion.num_frames / max(elapsed, 1e-9), 2)
+            writer.metrics.update({"frames": motion.num_frames, "no_depth": bool(no_depth),
+                                   "frames_with_cloud": cloud_frames,
+                                   "xi_vertices_per_frame": float(xi_mask.sum(1).mean())})
+            distances = None
+            if capture is not None:
+                distances = _score(writer, capture, sequence, model, meshes, template, uv_inputs, no_depth,
+                                   int(cfg["preview"]["frames"]))
+            fmt = export if export is not None else str(cfg["export"])
+            if fmt != "none":
+                if writer.single_file:
+                    raise EgorelightError("--export needs a directory output", out)
+                export_sequence(writer.path(EXPORT_DIR), meshes, fmt, character.face_uvs)
+            if not writer.single_file:
+                _write_preview(writer, character, meshes, distances, capture, calibration, sequence, cfg)
+
+        return self.run.produce(out, "meshes", write, inputs=inputs, source_files=sources)
+
+
+# ---------------------------------------------------------------------------------- scoring
+def _score(writer: ArtifactWriter, capture: Capture, sequence: str, model: AnimationModel, meshes: MeshSequence,
+           template, uv_inputs: torch.Tensor, no_depth: bool, preview_count: int) -> dict[int, np.ndarray] | None:
+    """Ground-truth metrics (a) skinning, (b) no depth, (c) full; distances of the preview frames."""
+    from egorelight_cli.stages.animate import XI_CHANNELS
+    from egorelight_cli.stages.animate_eval import (groundtruth_meshes, point_to_surface_cm, score_meshes,
+                                                     visibility_of_truth)
+    from egorelight_cli.synth.groundtruth import oracle_calibration
+
+    truth = groundtruth_meshes(capture, sequence)
+    if truth is None:
+        return None
+    if truth.vertices.shape[1] != meshes.vertices.shape[1]:
+        console.info("ground-truth meshes have another topology than the character: no metrics")
+        return None
+    calibration = oracle_calibration(capture.root)
+    visible = visibility_of_truth(capture, calibration, sequence, truth, meshes.frame_ids)
+    predictions = {"skinning": template.vertices.astype(np.float32)}
+    if no_depth:
+        predictions["no_depth"] = meshes.vertices
+    else:
+        blind = uv_inputs.clone()
+        blind[:, XI_CHANNELS] = 0.0
+        predictions["no_depth"] = model.predict(blind, meshes.theta)["vertices"]
+        predictions["full"] = meshes.vertices
+    scores = score_meshes(predictions, meshes.frame_ids, truth, visible)
+    mine = "no_depth" if no_depth else "full"
+    scores["p2s_cm"] = scores[f"{mine}_p2s_cm"]
+    scores["p2s_ego_visible_cm"] = scores[f"{mine}_p2s_ego_visible_cm"]
+    scores["ego_visible_vertices_per_frame"] = float(np.mean([v.sum() for v in visible.values()])) if visible else 0.0
+    writer.metrics.update(scores)
+    writer.units.update({"p2s_cm": "cm, mean distance of predicted vertices to the true surface",
+                         "p2s_ego_visible_cm": "cm, same over true vertices seen by the down-facing ego cameras"})
+    from egorelight_cli.stages.ik_commands import preview_frames
+
+    distances = {}
+    for row in preview_frames(meshes.num_frames, int(preview_count)):
+        fid = int(meshes.frame_ids[row])
+        if fid in visible:
+            gt = truth.vertices[truth.index_of(int(fid))]
+            distances[int(fid)] = point_to_surface_cm(meshes.vertices[row], gt, truth.faces)
+    return distances
+
+
+# ---------------------------------------------------------------------------------- preview
+def _colour_by_distance(distance_cm: np.ndarray, max_cm: float = 2.0) -> np.ndarray:
+    """(V,3) RGB in [0,255]: blue (0) -> red (``max_cm`` and more), via OpenCV's JET map."""
+    import cv2
+
+    level = np.clip(distance_cm / max_cm, 0, 1) * 255
+    bgr = cv2.applyColorMap(level.astype(np.uint8)[:, None], cv2.COLORMAP_JET)[:, 0]
+    return bgr[:, ::-1].astype(np.float32)
+
+
+def _side_view(character: Character, vertices: np.ndarray, distance_cm: np.ndarray | None, width: int,
+               height: int) -> np.ndarray:
+    """(H,W,3) uint8 side view; coloured by distance to the truth when given, else grey-shaded."""
+    from egorelight_cli.render.preview import framing_camera, shade_mesh
+    from egorelight_cli.render.raster import rasterize
+
+    forward = np.array([0.0, 0.0, -1.0])
+    side = np.cross(forward, [0.0, 1.0, 0.0])
+    camera = framing_camera(vertices, side, width, height, "side")
+    if distance_cm is None:
+        return shade_mesh(character, vertices, camera)
+    raster = rasterize(vertices, character.faces, camera)
+    colours = _colour_by_distance(distance_cm)
+    image = np.full((height, width, 3), 255.0, np.float32)
+    mask = raster.mask
+    corner = colours[character.faces[raster.face_id[mask]]]  # (P,3,3)
+    colour = np.einsum("pkc,pk->pc", corner, raster.barycentrics[mask])
+    to_cam = camera.centre_world[None] - raster.points[mask]
+    to_cam /= np.linalg.norm(to_cam, axis=1, keepdims=True)
+    lambert = np.abs(np.sum(raster.normal[mask] * to_cam, axis=1))
+    image[mask] = colour * (0.45 + 0.55 * lambert)[:, None]
+    return np.clip(image, 0, 255).astype(np.uint8)
+
+
+def _ego_overlay(capture: Capture, calibration, sequence: str, character: Character, vertices: np.ndarray,
+                 frame_id: int, height: int) -> np.ndarray | None:
+    """The down-left ego image with the mesh's visible vertices drawn over it (None if unavailable)."""
+    import cv2
+
+    from egorelight_cli.geometry.cameras import Camera, invert_rigid, project_world
+
+    try:
+        seq = capture.sequence(sequence)
+        role = next(r for r in seq.ego_roles if r.startswith("down"))
+        cam = capture.ego_camera(role)
+        T = calibration.T_world_from_cam(role, sequence, int(frame_id))
+        image = seq.read_ego_image(role, calibration.ego_frame_id(sequence, int(frame_id)))
+    except (EgorelightError, StopIteration):
+        return None
+    camera = Camera(cam.model, cam.K, cam.dist, cam.width, cam.height, invert_rigid(T), role)
+    from egorelight_cli.stages.animate_eval import ego_visible_vertices
+
+    seen = ego_visible_vertices(vertices, character.faces, [camera])
+    pixels, valid = project_world(camera, vertices[seen], return_valid=True)
+    image = np.ascontiguousarray(image[..., :3]).copy()
+    for (u, v), ok in zip(np.asarray(pixels), np.asarray(valid)):
+        if ok and np.isfinite(u) and np.isfinite(v):
+            cv2.circle(image, (int(round(u)), int(round(v))), 0, (40, 255, 80), -1)
+    scale = height / image.shape[0]
+    return cv2.resize(image, (max(int(round(image.shape[1] * scale)), 1), height), interpolation=cv2.INTER_NEAREST)
+
+
+def _write_preview(writer: ArtifactWriter, character: Character, meshes: MeshSequence,
+                   distances: dict[int, np.ndarray] | None, capture: Capture | None, calibration, sequence: str,
+                   cfg: Config) -> None:
+    import cv2
+
+    from egorelight_cli.io.images import write_image
+    from egorelight_cli.stages.ik_commands import preview_frames
+
+    preview = cfg["preview"]
+    width, height = int(preview["width"]), int(preview["height"])
+    tiles = []
+    for row in preview_frames(meshes.num_frames, int(preview["frames"])):
+        fid = int(meshes.frame_ids[row])
+        d = None if distances is None else distances.get(fid)
+        tile = _side_view(character, meshes.vertices[row], d, width, height)
+        label = f"frame {fid}" + ("" if d is None else f" {d.mean():.2f} cm")
+        cv2.putText(tile, label, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
+        parts = [tile]
+        if capture is not None and calibration is not None:
+            ego = _ego_overlay(capture, calibration, sequence, character, meshes.vertices[row], fid, height)
+            if ego is not None:
+                parts.insert(0, ego)
+        tiles.append(np.concatenate(parts, axis=1))
+    widest = max(t.shape[1] for t in tiles)
+    tiles = [np.pad(t, ((0, 0), (0, widest - t.shape[1]), (0, 0)), constant_values=255) for t in tiles]
+    image = np.concatenate(tiles, axis=0)
+    if distances is not None:
+        image = np.pad(image, ((0, 16), (0, 0), (0, 0)), constant_values=255)
+        cv2.putText(image, "colour: distance to true mesh, blue 0 -> red 2 cm", (4, image.shape[0] - 5),
+                    cv2.FONT_HERSHEY_SIMPLEX, 0.35, (0, 0, 0), 1, cv2.LINE_AA)
+    write_image(writer.path(PREVIEW_PNG), image)

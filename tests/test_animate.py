@@ -1,0 +1,134 @@
+"""``egorelight train animate`` and ``egorelight animate`` on the tiny capture.
+
+The point clouds here are built from the ground truth (ray cast from the down cameras with the
+oracle calibration, plus noise) by the evaluation helper, standing in for ``egodepth``.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from egorelight_cli.io.motion import Motion, read_motion_npz, write_motion_npz
+
+
+def _metrics(artifact: Path) -> dict:
+    return json.loads((artifact / "manifest.json").read_text())["metrics"]
+
+
+@pytest.fixture(scope="module")
+def animate_inputs(tiny_capture, tmp_path_factory):
+    """GT-derived motion subsets and point clouds, and a model trained on ego_train (tiny preset)."""
+    from egorelight_cli.io.pointcloud import write_pointcloud_npz
+    from egorelight_cli.stages.animate_eval import groundtruth_pointcloud
+
+    root = tmp_path_factory.mktemp("animate")
+    gt = Path(tiny_capture) / "groundtruth"
+    for seq in ("ego_train", "test"):
+        write_pointcloud_npz(root / f"{seq}_cloud.npz", groundtruth_pointcloud(tiny_capture, seq, stride=2),
+                             source="ground truth (test)")
+    motion = read_motion_npz(gt / "test" / "motion.npz")
+    keep = motion.frame_ids >= motion.frame_ids.max() - 3  # the content frames and one before
+    write_motion_npz(root / "test_motion.npz", Motion(motion.theta[keep], motion.dof_names, motion.frame_ids[keep],
+                                                      motion.fps))
+    model = root / "model"
+    with pytest.raises(SystemExit) as exit_info:
+        from egorelight_cli.cli import main
+
+        main(["--preset", "tiny", "-q", "train", "animate", "--capture", str(tiny_capture), "--motion",
+              str(gt / "ego_train" / "motion.npz"), "--pointcloud", str(root / "ego_train_cloud.npz"), "--out",
+              str(model)])
+    assert exit_info.value.code in (0, None)
+    return {"root": root, "model": model, "motion": root / "test_motion.npz", "cloud": root / "test_cloud.npz",
+            "capture": Path(tiny_capture)}
+
+
+def _run(*args):
+    from egorelight_cli.cli import main
+
+    try:
+        main([str(a) for a in args])
+    except SystemExit as exc:
+        return int(exc.code or 0)
+    return 0
+
+
+def test_training_a_few_steps_lowers_the_chamfer_loss(animate_inputs):
+    metrics = _metrics(animate_inputs["model"])
+    assert metrics["training_frames"] == 3 and metrics["frames_with_cloud"] == 9
+    assert metrics["train_chamfer_cm_after"] < metrics["train_chamfer_cm_before"]
+    assert (animate_inputs["model"] / "model.pt").is_file() and (animate_inputs["model"] / "curve.png").is_file()
+
+
+def test_animate_writes_meshes_metrics_preview_and_export(animate_inputs, character):
+    from egorelight_cli.io.mesh_sequence import load_meshes
+
+    out = animate_inputs["root"] / "meshes"
+    code = _run("--preset", "tiny", "-q", "animate", "--motion", animate_inputs["motion"], "--pointcloud",
+                animate_inputs["cloud"], "--model", animate_inputs["model"], "--capture", animate_inputs["capture"],
+                "--export", "ply", "--out", out)
+    assert code == 0
+    meshes, artifact = load_meshes(out)
+    assert artifact is not None and artifact.kind == "meshes"
+    T = meshes.num_frames
+    assert T == 4 and meshes.vertices.shape == (T, character.num_vertices, 3)
+    assert meshes.eg_rotation.shape == (T, character.graph.num_nodes, 3) and meshes.offsets.shape == meshes.vertices.shape
+    metrics = _metrics(out)
+    for variant in ("skinning", "no_depth", "full"):
+        for region in ("p2s_cm", "p2s_ego_visible_cm"):
+            value = metrics[f"{variant}_{region}"]
+            assert np.isfinite(value) and 0 <= value < 2.0, (variant, region, value)
+    assert metrics["eval_frames"] == 4 and metrics["ego_visible_vertices_per_frame"] > 200
+    assert metrics["xi_vertices_per_frame"] > 200  # the GT cloud explains many template vertices
+    assert (out / "preview.png").is_file()
+    assert sorted(p.name for p in (out / "export").iterdir()) == [f"{int(f):06d}.ply" for f in meshes.frame_ids]
+
+
+def test_no_depth_ablation_needs_no_cloud(animate_inputs):
+    out = animate_inputs["root"] / "meshes_nodepth.npz"
+    code = _run("--preset", "tiny", "-q", "animate", "--motion", animate_inputs["motion"], "--model",
+                animate_inputs["model"], "--no-depth", "--out", out)
+    assert code == 0
+    from egorelight_cli.io.mesh_sequence import load_meshes
+
+    meshes, _ = load_meshes(out)
+    assert meshes.num_frames == 4
+
+
+def test_depth_agnostic_student_fine_tunes_on_flat_lit_relight_frames(animate_inputs):
+    gt = animate_inputs["capture"] / "groundtruth"
+    out = animate_inputs["root"] / "student"
+    code = _run("--preset", "tiny", "-q", "--set", "train.steps=2", "train", "animate", "--capture",
+                animate_inputs["capture"], "--seq", "relight_train", "--motion", gt / "relight_train" / "motion.npz",
+                "--no-depth", "--init", animate_inputs["model"], "--out", out)
+    assert code == 0
+    metrics = _metrics(out)
+    assert metrics["no_depth"] is True
+    assert metrics["training_frames"] == 2  # frames 0 and 2 are flat-lit, 1 and 3 env-lit
+
+
+def _one_line_error(capsys, code: int, *fragments: str) -> None:
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and err[0].startswith("egorelight: error: "), err
+    for fragment in fragments:
+        assert fragment in err[0], err
+
+
+def test_bad_inputs_give_one_line_errors(animate_inputs, tmp_path, capsys):
+    base = ("--preset", "tiny", "animate", "--motion", animate_inputs["motion"], "--model", animate_inputs["model"])
+    capsys.readouterr()
+    _one_line_error(capsys, _run(*base, "--out", tmp_path / "a"), "point cloud is required")
+    _one_line_error(capsys, _run("--preset", "tiny", "animate", "--motion", animate_inputs["motion"], "--model",
+                                 animate_inputs["motion"], "--no-depth", "--out", tmp_path / "b"))
+    # a cloud that shares no frame with the motion
+    from egorelight_cli.io.pointcloud import PointCloudSequence, write_pointcloud_npz
+
+    write_pointcloud_npz(tmp_path / "late.npz", PointCloudSequence(np.zeros((1, 4, 3)), np.zeros((1, 4, 3)),
+                                                                    np.zeros((1, 4), bool), np.array([999])))
+    _one_line_error(capsys, _run(*base, "--pointcloud", tmp_path / "late.npz", "--out", tmp_path / "c"),
+                    "share no frame")
+    _one_line_error(capsys, _run("--preset", "tiny", "animate", "--motion", tmp_path / "missing.npz", "--model",
+                                 animate_inputs["model"], "--no-depth", "--out", tmp_path / "d"), "not found")
