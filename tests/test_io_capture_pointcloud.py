@@ -18,6 +18,8 @@ def test_capture_reader_sees_every_sequence_and_camera(tiny_capture):
     test = capture.sequence("test")
     assert test.purpose == "test"
     assert set(test.content_frame_ids) <= set(test.frame_ids)
+    wild = capture.sequence("wild")  # no studio stream: content frames are its ego frames
+    assert len(wild.content_frame_ids) > 0 and set(wild.content_frame_ids) <= set(wild.ego_frame_ids)
     image = test.read_ego_image("down_left", int(test.ego_frame_ids[0]))
     cam = capture.ego_camera("down_left")
     assert image.shape == (cam.height, cam.width, 3) and image.dtype == np.uint8

@@ -76,9 +76,7 @@ class SequenceInfo:
     @property
     def content_frame_ids(self) -> np.ndarray:
         """(T_c,) int64 studio frames after the standby / sync-code prefix (wild: ego ids)."""
-        ids = self.doc.get("content_frame_ids")
-        if ids is None:
-            ids = self.doc.get("frame_ids") or self.doc.get("ego_frame_ids", [])
+        ids = self.doc.get("content_frame_ids") or self.doc.get("frame_ids") or self.doc.get("ego_frame_ids", [])
         return np.asarray(ids, dtype=np.int64)
 
     @property

@@ -1,0 +1,532 @@
+"""Egocentric depth (paper Sec. "Egocentric Depth Estimator"): the two down-facing fisheye
+images of a frame -> metric depth per view -> one fused world point cloud of P points with
+normals.
+
+* **Supervision** (``train egodepth``): the multi-view reconstruction ``recon/<frame>.ply``
+  (NeuS2 in the paper) ray-cast into each ego camera posed by the calibration
+  (``T_world_from_cam = H inv(Pi)``) gives a metric range map. The reconstruction also holds
+  the headset's outer shell, which the ego cameras see at a few centimetres: hits nearer than
+  ``train.near_m`` are not body, and pixels where that happens in at least
+  ``train.self_occlusion_fraction`` of the training frames form a per-camera *self-occlusion
+  mask* (stored in the model, applied at inference). Back-facing hits (rays leaving the
+  reconstruction from inside) are not supervised either.
+* **Network** (:class:`~egorelight_cli.nn.depth_net.DepthNet`): shared by both views; trained
+  with L1 on log range over the supervised pixels plus a body-mask BCE, with the paper's colour
+  jitter and random crops; optional Depth-Anything-V2 prior (``--backbone``).
+* **Inference**: range where the body probability exceeds ``predict.mask_threshold``, outside the
+  self-occlusion mask, beyond ``predict.min_range_m``, minus depth-discontinuity pixels;
+  ``--method sgbm`` uses OpenCV SGBM on the rectified fisheye pair instead
+  (:mod:`egorelight_cli.geometry.fisheye_stereo`).
+* **Point cloud**: per view ``z = (K Pi H)^-1 d`` (:func:`~egorelight_cli.geometry.depth.unproject_depth`),
+  both views fused, P points sampled uniformly, Hoppe normals (KD-tree PCA) oriented towards
+  the camera that saw each point; fewer than P points are padded and flagged invalid.
+* **Metrics** (capture with ``groundtruth/``): range AbsRel and RMSE (cm) inside the body mask
+  (the true body mesh ray-cast into the ego view; where the frame has a reconstruction, only
+  pixels where it agrees within ``eval.occluder_margin_m``: elsewhere the headset, which is not
+  in the body mesh, hides the body), coverage of that mask, and the point-to-surface
+  distance (cm) of the fused points to the true mesh; for the network and, with
+  ``eval.compare_sgbm``, for SGBM on the same frames.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from egorelight_cli.errors import EgorelightError
+from egorelight_cli.geometry.cameras import Camera, invert_rigid
+from egorelight_cli.geometry.depth import camera_ray_map, depth_edges, range_to_depth, render_depth, unproject_depth
+from egorelight_cli.geometry.pointcloud_ops import SurfaceDistance, fixed_size_cloud, fuse_views
+from egorelight_cli.geometry.raycast import RayCaster
+from egorelight_cli.io.calibration import Calibration
+from egorelight_cli.io.capture import Capture, SequenceInfo
+from egorelight_cli.nn.depth_net import DepthNet
+
+METHODS = ("net", "sgbm")
+MODEL_STAGE = "egodepth"
+
+
+# ------------------------------------------------------------------------------------ views
+@dataclass(frozen=True, eq=False)
+class EgoView:
+    """One ego camera at one master-clock frame.
+
+    Attributes:
+        role: camera role.
+        frame_id: studio (master-clock) frame id (wild: ego id).
+        camera: intrinsics with the pose ``T_cam_from_world = inv(H inv(Pi))``.
+        image: (H,W,3) uint8 sRGB.
+    """
+
+    role: str
+    frame_id: int
+    camera: Camera
+    image: np.ndarray
+
+
+def posed_camera(capture: Capture, calibration: Calibration, role: str, seq: str, frame_id: int) -> Camera:
+    """The ego camera ``role`` placed by the calibration at ``frame_id``."""
+    c = capture.ego_camera(role)
+    T_world_from_cam = calibration.T_world_from_cam(role, seq, int(frame_id))
+    return Camera(c.model, c.K, c.dist, c.width, c.height, invert_rigid(T_world_from_cam), role)
+
+
+def load_view(capture: Capture, calibration: Calibration, sequence: SequenceInfo, role: str, frame_id: int) -> EgoView:
+    """Camera and image of ``role`` at master-clock ``frame_id`` (image ``frame + stream_offset``)."""
+    camera = posed_camera(capture, calibration, role, sequence.name, frame_id)
+    image = sequence.read_ego_image(role, calibration.ego_frame_id(sequence.name, frame_id))
+    if image.shape[:2] != (camera.height, camera.width):
+        raise EgorelightError(f"ego image of {role} is {image.shape[1]}x{image.shape[0]}, the camera is "
+                              f"{camera.width}x{camera.height}", sequence.ego_image_path(role, calibration.ego_frame_id(
+                                  sequence.name, frame_id)))
+    return EgoView(role, int(frame_id), camera, image)
+
+
+def check_roles(capture: Capture, sequence: SequenceInfo, roles: Sequence[str]) -> None:
+    sequence.require_stream("ego")
+    for role in roles:
+        capture.ego_camera(role)
+        if role not in sequence.ego_roles:
+            raise EgorelightError(f"sequence {sequence.name!r} has no ego stream {role!r}", sequence.root / "sequence.json")
+
+
+def usable_frames(calibration: Calibration, sequence: SequenceInfo, roles: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
+    """Content frames (master clock) whose ego images exist, and for each whether the calibration
+    has a valid head pose there. Frames without ego images are dropped."""
+    if sequence.name not in calibration.head_poses:
+        raise EgorelightError(f"calibration has no head poses for sequence {sequence.name!r}")
+    poses = calibration.head_poses[sequence.name]
+    candidates = sequence.content_frame_ids  # wild (no studio stream): its ego ids, offset 0
+    frames, posed = [], []
+    for f in candidates:
+        ego = calibration.ego_frame_id(sequence.name, int(f))
+        if all(sequence.ego_image_path(r, ego).exists() for r in roles):
+            frames.append(int(f))
+            index = np.nonzero(poses.frame_ids == f)[0]
+            posed.append(bool(index.size and poses.valid[index[0]]))
+    if not frames:
+        raise EgorelightError(f"sequence {sequence.name!r} has no content frame with ego images of "
+                              f"{', '.join(roles)}", sequence.root)
+    return np.array(frames, np.int64), np.array(posed, bool)
+
+
+# ------------------------------------------------------------------------------ supervision
+@dataclass(frozen=True, eq=False)
+class TrainingView:
+    """One supervised view: image (H,W,3) uint8, range (H,W) float32 metres, supervised (H,W)
+    bool, near (H,W) bool (reconstruction hit closer than ``near_m``: the headset)."""
+
+    role: str
+    sequence: str
+    frame_id: int
+    image: np.ndarray
+    range: np.ndarray
+    supervised: np.ndarray
+    near: np.ndarray
+
+
+def supervision(capture: Capture, calibration: Calibration, sequences: Sequence[SequenceInfo], roles: Sequence[str],
+                near_m: float, max_frames: int = 0) -> list[TrainingView]:
+    """Render every available reconstruction into the ego views (see the module docstring)."""
+    from egorelight_cli.io.meshes import read_mesh
+
+    views: list[TrainingView] = []
+    for sequence in sequences:
+        check_roles(capture, sequence, roles)
+        frames, posed = usable_frames(calibration, sequence, roles)
+        frames = [f for f, ok in zip(frames, posed) if ok and sequence.recon_path(f).exists()]
+        if max_frames > 0 and len(frames) > max_frames:
+            frames = [frames[i] for i in np.linspace(0, len(frames) - 1, max_frames).round().astype(int)]
+        for f in frames:
+            vertices, faces = read_mesh(sequence.recon_path(f))
+            caster = RayCaster(vertices, faces)
+            for role in roles:
+                view = load_view(capture, calibration, sequence, role, f)
+                rendered = render_depth(view.camera, caster)
+                near = rendered.hit & (rendered.range < near_m)
+                supervised = rendered.hit & rendered.front_facing & ~near
+                views.append(TrainingView(role, sequence.name, f, view.image, rendered.range, supervised, near))
+    if not views:
+        names = ", ".join(s.name for s in sequences)
+        raise EgorelightError(f"no training frame: sequences {names} have no reconstruction (recon/) at a posed "
+                              "frame with ego images")
+    return views
+
+
+def self_occlusion_masks(views: Sequence[TrainingView], fraction: float) -> dict[str, np.ndarray]:
+    """Per role (H,W) bool: pixels where the reconstruction shows the headset itself in at least
+    ``fraction`` of the training frames."""
+    masks = {}
+    for role in sorted({v.role for v in views}):
+        near = np.stack([v.near for v in views if v.role == role])
+        masks[role] = near.mean(axis=0) >= fraction
+    return masks
+
+
+# --------------------------------------------------------------------------------- training
+@dataclass(frozen=True)
+class TrainSettings:
+    steps: int
+    batch: int
+    crop: int
+    lr: float
+    w_depth: float
+    w_mask: float
+    jitter: dict
+    log_every: int
+    checkpoint_every: int
+    seed: int
+
+    @classmethod
+    def from_config(cls, cfg) -> "TrainSettings":
+        t = cfg.train
+        return cls(int(t.steps), int(t.batch), int(t.crop), float(t.lr), float(t.loss.depth), float(t.loss.mask),
+                   dict(t.jitter.to_dict()), int(t.log_every), int(t.checkpoint_every), int(cfg.seed))
+
+
+def _tensors(views: Sequence[TrainingView], ray_maps: dict, self_masks: dict) -> dict[str, torch.Tensor]:
+    """Stacked training tensors: image (N,3,H,W) [0,1], rays (N,3,H,W), log range (N,1,H,W),
+    supervised (N,1,H,W), weight of the mask loss (N,1,H,W) (inside the lens, outside the
+    self-occlusion mask)."""
+    images = np.stack([v.image for v in views]).astype(np.float32) / 255.0
+    rays = np.stack([ray_maps[v.role][0] for v in views]).astype(np.float32)
+    inside = np.stack([ray_maps[v.role][1] & ~self_masks[v.role] for v in views])
+    supervised = np.stack([v.supervised for v in views]) & inside
+    log_range = np.log(np.where(supervised, np.stack([v.range for v in views]), 1.0))
+    return {
+        "image": torch.from_numpy(images).permute(0, 3, 1, 2).contiguous(),
+        "rays": torch.from_numpy(rays).permute(0, 3, 1, 2).contiguous(),
+        "log_range": torch.from_numpy(log_range.astype(np.float32))[:, None],
+        "supervised": torch.from_numpy(supervised)[:, None],
+        "inside": torch.from_numpy(inside)[:, None],
+    }
+
+
+def depth_losses(model: DepthNet, batch: dict[str, torch.Tensor], prior: torch.Tensor | None = None) -> dict:
+    """L1 on log range over supervised pixels and the body-mask BCE inside the lens."""
+    log_range, logit = model(batch["image"], batch["rays"], prior)
+    sup = batch["supervised"].float()
+    inside = batch["inside"].float()
+    l_depth = ((log_range - batch["log_range"]).abs() * sup).sum() / sup.sum().clamp_min(1.0)
+    bce = torch.nn.functional.binary_cross_entropy_with_logits(logit, sup, reduction="none")
+    l_mask = (bce * inside).sum() / inside.sum().clamp_min(1.0)
+    return {"depth_l1_log": l_depth, "mask_bce": l_mask}
+
+
+def _crop(batch: dict[str, torch.Tensor], size: int, generator: torch.Generator) -> dict[str, torch.Tensor]:
+    """A random ``size`` square of every map. The corner is drawn over a range extended by half a
+    crop on each side and clamped, so border pixels (the chin and hands of a fisheye view) are
+    cropped about a third as often as central ones instead of almost never."""
+    H, W = batch["image"].shape[-2:]
+    if size <= 0 or size >= min(H, W):
+        return batch
+
+    def corner(extent: int) -> int:
+        raw = int(torch.randint(-size // 2, extent - size + size // 2 + 1, (1,), generator=generator))
+        return min(max(raw, 0), extent - size)
+
+    y, x = corner(H), corner(W)
+    return {k: v[..., y:y + size, x:x + size] for k, v in batch.items()}
+
+
+def train_depth_net(views: Sequence[TrainingView], ray_maps: dict, self_masks: dict, settings: TrainSettings,
+                    net_cfg, device: torch.device, checkpoint=None, prior_fn=None) -> tuple[DepthNet, list[dict]]:
+    """Fit a :class:`DepthNet` to the supervised views; returns the model (eval mode, CPU) and curve."""
+    from egorelight_cli.nn.augment import ColourJitter
+    from egorelight_cli.nn.training import train
+
+    data = _tensors(views, ray_maps, self_masks)
+    if not bool(data["supervised"].any()):
+        raise EgorelightError("the reconstructions cover no ego pixel: nothing to supervise the depth network with")
+    priors = None
+    if prior_fn is not None:
+        priors = torch.cat([prior_fn(data["image"][i:i + 4]) for i in range(0, len(views), 4)])
+    mean = float(data["log_range"][data["supervised"]].median())
+    torch.manual_seed(settings.seed)
+    model = DepthNet(int(net_cfg.base_channels), int(net_cfg.levels), 1 if priors is not None else 0, mean).to(device)
+    optimizer = torch.optim.Adam(model.parameters(), lr=settings.lr)
+    scheduler = torch.optim.lr_scheduler.OneCycleLR(optimizer, max_lr=settings.lr, total_steps=max(settings.steps, 1),
+                                                    pct_start=0.1)
+    jitter = ColourJitter(**settings.jitter)
+    if priors is not None:
+        data["prior"] = priors
+    N = len(views)
+
+    def step_fn(step: int) -> dict[str, torch.Tensor]:
+        generator = torch.Generator().manual_seed(settings.seed * 100003 + step)
+        index = torch.randint(0, N, (settings.batch,), generator=generator)
+        batch = _crop({k: v[index] for k, v in data.items()}, settings.crop, generator)
+        batch["image"] = jitter(batch["image"], generator)
+        batch = {k: v.to(device) for k, v in batch.items()}
+        losses = depth_losses(model, batch, batch.get("prior"))
+        losses["loss"] = settings.w_depth * losses["depth_l1_log"] + settings.w_mask * losses["mask_bce"]
+        return losses
+
+    curve = train(model, optimizer, step_fn, settings.steps, checkpoint=checkpoint,
+                  checkpoint_every=settings.checkpoint_every, log_every=settings.log_every, scheduler=scheduler,
+                  desc="train egodepth")
+    return model.cpu().eval(), curve
+
+
+@torch.no_grad()
+def fit_report(model: DepthNet, views: Sequence[TrainingView], ray_maps: dict, self_masks: dict,
+               prior_fn=None) -> dict:
+    """How well the model fits its own training views (full images, no jitter): mean |log range
+    error| over the supervised pixels for the network and for the constant training median, and
+    the body-mask IoU."""
+    data = _tensors(views, ray_maps, self_masks)
+    net, constant, inter, union = [], [], 0, 0
+    for i in range(0, len(views), 4):
+        batch = {k: v[i:i + 4] for k, v in data.items()}
+        prior = prior_fn(batch["image"]) if prior_fn is not None else None
+        log_range, logit = model(batch["image"], batch["rays"], prior)
+        sup = batch["supervised"]
+        net.append((log_range - batch["log_range"]).abs()[sup])
+        constant.append((model.log_range_mean - batch["log_range"]).abs()[sup])
+        body = (logit > 0) & batch["inside"]
+        inter += int((body & sup).sum())
+        union += int((body | sup).sum())
+    return {"train_log_range_l1": float(torch.cat(net).mean()),
+            "train_log_range_l1_constant_baseline": float(torch.cat(constant).mean()),
+            "train_mask_iou": inter / max(union, 1)}
+
+
+# -------------------------------------------------------------------------------- inference
+@dataclass(frozen=True)
+class PredictSettings:
+    mask_threshold: float
+    min_range_m: float
+    max_range_m: float
+    edge_relative_jump: float
+
+    @classmethod
+    def from_config(cls, cfg) -> "PredictSettings":
+        p = cfg.predict
+        return cls(float(p.mask_threshold), float(p.min_range_m), float(p.max_range_m), float(p.edge_relative_jump))
+
+
+def clean_range(range_map: np.ndarray, inside: np.ndarray, settings: PredictSettings) -> np.ndarray:
+    """Zero out-of-bounds ranges and depth-discontinuity pixels of a (H,W) range map."""
+    valid = inside & (range_map >= settings.min_range_m) & (range_map <= settings.max_range_m)
+    if settings.edge_relative_jump > 0:
+        valid &= ~depth_edges(range_map, valid, settings.edge_relative_jump)
+    return np.where(valid, range_map, 0.0).astype(np.float32)
+
+
+@torch.no_grad()
+def predict_ranges_net(model: DepthNet, views: Sequence[EgoView], ray_maps: dict, self_masks: dict,
+                       settings: PredictSettings, device: torch.device, prior_fn=None) -> dict[str, np.ndarray]:
+    """Range maps (H,W) float32 (0 = none) of a frame's views, by role."""
+    images = torch.from_numpy(np.stack([v.image for v in views]).astype(np.float32) / 255.0).permute(0, 3, 1, 2)
+    rays = torch.from_numpy(np.stack([ray_maps[v.role][0] for v in views]).astype(np.float32)).permute(0, 3, 1, 2)
+    prior = prior_fn(images).to(device) if prior_fn is not None else None
+    log_range, logit = model(images.to(device), rays.to(device), prior)
+    ranges = torch.exp(log_range[:, 0]).cpu().numpy()
+    body = torch.sigmoid(logit[:, 0]).cpu().numpy() > settings.mask_threshold
+    out = {}
+    for i, v in enumerate(views):
+        inside = ray_maps[v.role][1] & ~self_masks.get(v.role, False) & body[i]
+        out[v.role] = clean_range(ranges[i], inside, settings)
+    return out
+
+
+class SGBMDepth:
+    """SGBM on the rectified down-facing pair (the pair is fixed on the headset, so it is
+    rectified once from the calibration's hand-eye transforms)."""
+
+    def __init__(self, capture: Capture, calibration: Calibration, roles: Sequence[str], cfg):
+        from egorelight_cli.geometry.fisheye_stereo import rectify_pair
+
+        if len(roles) != 2:
+            raise EgorelightError(f"sgbm needs exactly two ego cameras, got {', '.join(roles)}")
+        self.roles = tuple(roles)
+        left, right = (capture.ego_camera(r) for r in roles)
+        for role in roles:
+            if role not in calibration.ego_cameras:
+                raise EgorelightError(f"calibration has no ego camera {role!r}")
+        Pi_l, Pi_r = (calibration.ego_cameras[r].T_cam_from_hmd for r in roles)
+        T_right_from_left = Pi_r @ invert_rigid(Pi_l)
+        if T_right_from_left[0, 3] > 0:  # the reference must be the camera on the left of the baseline
+            self.roles = self.roles[::-1]
+            left, right = right, left
+            T_right_from_left = invert_rigid(T_right_from_left)
+        scale = float(cfg.sgbm.resolution_scale)
+        self.cameras = {"left": left, "right": right}
+        self.pair = rectify_pair(left, right, T_right_from_left, int(round(left.width * scale)),
+                                 int(round(left.height * scale)), float(cfg.sgbm.fov_deg),
+                                 float(cfg.sgbm.pitch_deg))
+        self.min_depth = float(cfg.sgbm.min_depth_m)
+        self.block = int(cfg.sgbm.block_size)
+
+    def __call__(self, views: Sequence[EgoView], ray_maps: dict, settings: PredictSettings) -> dict[str, np.ndarray]:
+        from egorelight_cli.geometry.fisheye_stereo import stereo_ranges
+
+        by_role = {v.role: v for v in views}
+        images = {"left": by_role[self.roles[0]].image, "right": by_role[self.roles[1]].image}
+        ranges = stereo_ranges(self.pair, self.cameras, images, self.min_depth, self.block)
+        return {self.roles[0]: clean_range(ranges["left"], ray_maps[self.roles[0]][1], settings),
+                self.roles[1]: clean_range(ranges["right"], ray_maps[self.roles[1]][1], settings)}
+
+
+# ------------------------------------------------------------------------------ point cloud
+def frame_pointcloud(views: Sequence[EgoView], ranges: dict, ray_maps: dict, size: int, neighbours: int,
+                     rng: np.random.Generator):
+    """Unproject each view's range map through its posed camera, fuse, sample P, Hoppe normals.
+
+    Returns points (P,3), normals (P,3) float32, valid (P,) bool, and the axial depth maps by role.
+    """
+    maps, masks, centres, depths = [], [], [], {}
+    for v in views:
+        depth = range_to_depth(ranges[v.role], ray_maps[v.role][0])
+        depths[v.role] = depth
+        points, valid = unproject_depth(v.camera, depth, rays=ray_maps[v.role])
+        maps.append(points)
+        masks.append(valid)
+        centres.append(v.camera.centre_world)
+    fused, seen_from = fuse_views(maps, masks, centres)
+    points, normals, valid = fixed_size_cloud(fused, seen_from, size, neighbours, rng)
+    return points, normals, valid, depths
+
+
+# -------------------------------------------------------------------------------- evaluation
+@dataclass
+class DepthErrors:
+    """Accumulated per-pixel and per-point errors of one method."""
+
+    abs_rel: list = field(default_factory=list)
+    sq_err: list = field(default_factory=list)
+    covered: int = 0
+    total: int = 0
+    surface: list = field(default_factory=list)
+    constant_abs_rel: list = field(default_factory=list)
+
+    def add_depth(self, pred: np.ndarray, truth: np.ndarray, mask: np.ndarray, constant: float | None = None) -> None:
+        """Score range maps (H,W) inside ``mask``; ``constant``: also score predicting that range
+        everywhere on the same pixels (the baseline a trained network must beat)."""
+        have = mask & (pred > 0)
+        self.total += int(mask.sum())
+        self.covered += int(have.sum())
+        self.abs_rel.append(np.abs(pred[have] - truth[have]) / truth[have])
+        self.sq_err.append((pred[have] - truth[have]) ** 2)
+        if constant is not None:
+            self.constant_abs_rel.append(np.abs(constant - truth[have]) / truth[have])
+
+    def metrics(self, prefix: str) -> dict:
+        out = {f"{prefix}depth_coverage": self.covered / max(self.total, 1)}
+        if self.covered:
+            out[f"{prefix}depth_absrel"] = float(np.concatenate(self.abs_rel).mean())
+            out[f"{prefix}depth_rmse_cm"] = float(np.sqrt(np.concatenate(self.sq_err).mean()) * 100)
+            if self.constant_abs_rel:
+                out[f"{prefix}depth_absrel_constant_baseline"] = float(np.concatenate(self.constant_abs_rel).mean())
+        if self.surface:
+            d = np.concatenate(self.surface)
+            if d.size:
+                out[f"{prefix}point_to_surface_cm"] = float(d.mean() * 100)
+                out[f"{prefix}point_to_surface_median_cm"] = float(np.median(d) * 100)
+        return out
+
+
+class GroundTruth:
+    """The true body surface per frame (``groundtruth/<seq>/meshes.npz``), for scoring only."""
+
+    def __init__(self, capture: Capture, sequence: SequenceInfo, occluder_margin_m: float):
+        from egorelight_cli.io.npz import read_npz
+
+        root = capture.groundtruth_root()
+        path = root / "groundtruth" / sequence.name / "meshes.npz" if root is not None else None
+        self.available = path is not None and path.is_file()
+        self.sequence = sequence
+        self.margin = occluder_margin_m
+        if self.available:
+            arrays, _ = read_npz(path)
+            self.vertices, self.faces = arrays["vertices"], arrays["faces"]
+            self.frame_ids = np.asarray(arrays["frame_ids"], np.int64)
+
+    def has(self, frame_id: int) -> bool:
+        return self.available and bool(np.any(self.frame_ids == frame_id))
+
+    def frame(self, frame_id: int, views: Sequence[EgoView]):
+        """(SurfaceDistance of the true mesh, {role: (true range (H,W), body mask (H,W))})."""
+        from egorelight_cli.io.meshes import read_mesh
+
+        i = int(np.nonzero(self.frame_ids == frame_id)[0][0])
+        caster = RayCaster(self.vertices[i], self.faces)
+        recon = None
+        if self.sequence.recon_path(frame_id).exists():
+            recon = RayCaster(*read_mesh(self.sequence.recon_path(frame_id)))
+        maps = {}
+        for v in views:
+            truth = render_depth(v.camera, caster)
+            mask = truth.hit
+            if recon is not None:
+                # The headset is not in the body mesh; where it hides the body the reconstruction
+                # either shows its outer shell (nearer) or nothing/back faces (its inner side).
+                seen = render_depth(v.camera, recon)
+                mask &= seen.front_facing & (np.abs(seen.range - truth.range) < self.margin)
+            maps[v.role] = (truth.range, mask)
+        return SurfaceDistance(self.vertices[i], self.faces), maps
+
+
+# ----------------------------------------------------------------------------------- previews
+def colour_depth(range_map: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """(H,W,3) uint8 turbo colours of a range map in [lo, hi]; black where there is none."""
+    import cv2
+
+    t = np.clip((range_map - lo) / max(hi - lo, 1e-6), 0, 1)
+    colour = cv2.applyColorMap((255 - t * 255).astype(np.uint8), cv2.COLORMAP_TURBO)[..., ::-1]
+    return np.where(range_map[..., None] > 0, colour, 0).astype(np.uint8)
+
+
+def depth_preview_row(views: Sequence[EgoView], ranges: dict, truth: dict | None, scale: int) -> np.ndarray:
+    """One row: per view the ego image, predicted range and (when known) true range."""
+    import cv2
+
+    tiles = []
+    values = np.concatenate([r[r > 0] for r in ranges.values()] + [np.array([0.2, 0.8])])
+    lo, hi = np.percentile(values, 2), np.percentile(values, 98)
+    for v in views:
+        tiles += [v.image, colour_depth(ranges[v.role], lo, hi)]
+        if truth is not None:
+            r, mask = truth[v.role]
+            tiles.append(colour_depth(np.where(mask, r, 0), lo, hi))
+    row = np.concatenate([np.pad(t, ((1, 1), (1, 1), (0, 0)), constant_values=255) for t in tiles], axis=1)
+    return cv2.resize(row, None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST)
+
+
+def pointcloud_preview(points: np.ndarray, normals: np.ndarray, distance: np.ndarray | None, mesh: tuple | None,
+                       width: int, height: int) -> np.ndarray:
+    """The fused points drawn over the true mesh (grey), coloured by their distance to it
+    (green 0 -> red >= 3 cm; blue without ground truth), seen against the points' mean normal
+    (the side of the body the ego cameras see)."""
+    import cv2
+
+    from egorelight_cli.geometry.cameras import project_world
+    from egorelight_cli.render.preview import framing_camera
+    from egorelight_cli.render.raster import rasterize
+
+    anchor = mesh[0] if mesh is not None else points
+    forward = -normals.mean(axis=0) if len(normals) else np.array([0.0, 0.0, -1.0])
+    forward[1] = np.clip(forward[1], -0.5, 0.5)  # keep the view off the vertical (framing_camera's up is +y)
+    if np.linalg.norm(forward) < 1e-6:
+        forward = np.array([0.0, 0.0, -1.0])
+    forward /= np.linalg.norm(forward)
+    camera = framing_camera(np.asarray(anchor, np.float64), forward, width, height, "preview")
+    image = np.full((height, width, 3), 255, np.uint8)
+    if mesh is not None:
+        raster = rasterize(mesh[0], mesh[1], camera)
+        image[raster.mask] = (90 + 120 * np.abs(raster.normal[raster.mask] @ camera.T_cam_from_world[2, :3]))[:, None]
+    pixels = project_world(camera, points)
+    keep = np.isfinite(pixels).all(axis=1)
+    if distance is not None:
+        t = np.clip(distance / 0.03, 0, 1)
+        colours = np.stack([255 * t, 255 * (1 - t), np.zeros_like(t)], axis=1)
+    else:
+        colours = np.tile([40.0, 90.0, 255.0], (len(points), 1))
+    depth = (camera.T_cam_from_world[:3, :3] @ np.asarray(points, np.float64).T)[2] if len(points) else np.zeros(0)
+    order = np.argsort(-depth)
+    for (u, v), c in zip(pixels[order][keep[order]], colours[order][keep[order]]):
+        cv2.circle(image, (int(round(u)), int(round(v))), 1, tuple(int(x) for x in c), -1)
+    return image

@@ -1,0 +1,257 @@
+"""The ``egorelight train egodepth`` and ``egorelight egodepth`` commands: load the capture and
+calibration, call :mod:`egorelight_cli.stages.egodepth`, write artifacts.
+
+``train egodepth`` writes a model artifact (``model.pt``: the network's state dict, its
+architecture, and in ``extra`` the roles, image sizes and per-camera self-occlusion masks;
+``curve.json``/``curve.png``). ``egodepth`` writes a ``pointcloud`` artifact:
+``pointcloud.npz`` (:mod:`egorelight_cli.io.pointcloud`), ``depth/<role>/<frame>.exr`` (channel
+``Z``, axial depth in metres, 0 = none; frame = master-clock id), ``preview.png`` (ego image,
+predicted and true depth) and ``preview_pointcloud.png`` (points over the true mesh).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from egorelight_cli import console
+from egorelight_cli.artifacts import Artifact, ArtifactWriter, open_artifact
+from egorelight_cli.config import Config
+from egorelight_cli.errors import EgorelightError
+from egorelight_cli.io.calibration import Calibration, read_calibration
+from egorelight_cli.io.capture import Capture, frame_file
+from egorelight_cli.pipeline import StageRun
+from egorelight_cli.stages import egodepth as ed
+
+PREVIEW_PNG = "preview.png"
+POINTCLOUD_PREVIEW_PNG = "preview_pointcloud.png"
+
+
+def load_inputs(capture_path: Path, calibration_path: Path) -> tuple[Capture, Artifact, Calibration, Artifact]:
+    capture_artifact = open_artifact(capture_path, kind="capture")
+    calibration_artifact = open_artifact(calibration_path, kind="calibration")
+    if calibration_artifact.single_file:
+        raise EgorelightError("a calibration is a directory artifact", calibration_path)
+    return (Capture(capture_artifact.root), capture_artifact, read_calibration(calibration_artifact.root),
+            calibration_artifact)
+
+
+def _prior(backbone: Path | None, device: torch.device):
+    if backbone is None:
+        return None
+    from egorelight_cli.nn.depth_net import DepthAnythingPrior
+
+    return DepthAnythingPrior(backbone, device)
+
+
+def load_depth_model(path: Path, roles) -> tuple[ed.DepthNet, dict, dict, Artifact]:
+    """(network, self-occlusion masks by role, model extras, artifact) of a ``train egodepth`` model."""
+    from egorelight_cli.io.model import read_model
+
+    artifact = open_artifact(path, kind="model")
+    if artifact.single_file:
+        raise EgorelightError("an egodepth model is a directory artifact", path)
+    payload = read_model(artifact.root, stage=ed.MODEL_STAGE)
+    arch = payload.architecture
+    try:
+        model = ed.DepthNet(int(arch["base_channels"]), int(arch["levels"]), int(arch["prior_channels"]))
+        model.load_state_dict(payload.state_dict)
+    except (KeyError, RuntimeError) as exc:
+        raise EgorelightError(f"egodepth model does not match the network ({type(exc).__name__}: {exc})", path) from None
+    masks = {role: np.asarray(m.numpy(), bool) for role, m in payload.extra.get("self_masks", {}).items()}
+    missing = [r for r in roles if r not in masks]
+    if missing:
+        raise EgorelightError(f"egodepth model was trained for cameras {', '.join(masks)}, not {', '.join(missing)}",
+                              path)
+    return model.eval(), masks, payload.extra, artifact
+
+
+@dataclass(frozen=True)
+class EgodepthCommands:
+    """``egodepth`` and ``train egodepth`` over one :class:`StageRun`."""
+
+    run: StageRun
+
+    # ------------------------------------------------------------------------------- train
+    def train(self, capture_path: Path, calibration_path: Path, out: Path, backbone: Path | None = None) -> Path:
+        from egorelight_cli.runtime import resolve_device
+
+        capture, capture_artifact, calibration, calibration_artifact = load_inputs(capture_path, calibration_path)
+        cfg = self.run.config()
+        roles = tuple(cfg.roles)
+        names = list(cfg.train.sequences) or [s.name for s in capture.sequences_with_purpose("ego_train")]
+        if not names:
+            raise EgorelightError("capture has no ego_train sequence (set train.sequences)", capture.root)
+        sequences = [capture.sequence(n) for n in names]
+        device = resolve_device(self.run.device)
+        prior = _prior(backbone, device)  # checks the folder before anything runs
+        sources = [backbone / "config.json"] if backbone is not None else []
+        checkpoint = Path(out).parent / f".{Path(out).name}.checkpoint.pt"
+
+        def write(writer: ArtifactWriter, cfg: Config) -> None:
+            from egorelight_cli.io.model import ModelPayload, write_model
+
+            if writer.single_file:
+                raise EgorelightError("an egodepth model is a directory artifact: give --out a directory name", out)
+            started = time.perf_counter()
+            views = ed.supervision(capture, calibration, sequences, roles, float(cfg.train.near_m),
+                                   int(cfg.train.max_frames))
+            masks = ed.self_occlusion_masks(views, float(cfg.train.self_occlusion_fraction))
+            ray_maps = {r: ed.camera_ray_map(capture.ego_camera(r)) for r in roles}
+            writer.timing["supervision_s"] = round(time.perf_counter() - started, 3)
+            console.info(f"train egodepth: {len(views)} supervised views from {', '.join(names)}")
+            started = time.perf_counter()
+            model, curve = ed.train_depth_net(views, ray_maps, masks, ed.TrainSettings.from_config(cfg), cfg.net,
+                                              device, checkpoint, prior)
+            writer.timing["train_s"] = round(time.perf_counter() - started, 3)
+            writer.metrics.update(ed.fit_report(model, views, ray_maps, masks, prior))
+            extra = {"roles": list(roles), "self_masks": {r: torch.from_numpy(m) for r, m in masks.items()},
+                     "image_size": {r: [capture.ego_camera(r).width, capture.ego_camera(r).height] for r in roles},
+                     "backbone": str(backbone) if backbone is not None else None,
+                     "training_views": len(views), "training_sequences": names}
+            write_model(writer.workdir, ModelPayload(ed.MODEL_STAGE, model.architecture(), model.state_dict(), extra,
+                                                     curve), curve_title="egodepth training loss")
+            writer.metrics.update({
+                "training_views": len(views), "training_frames": len({(v.sequence, v.frame_id) for v in views}),
+                "supervised_fraction": float(np.mean([v.supervised.mean() for v in views])),
+                "self_occlusion_fraction": {r: float(m.mean()) for r, m in masks.items()},
+                "loss_first": curve[0]["loss"] if curve else None, "loss_last": curve[-1]["loss"] if curve else None,
+                "backbone": "depth-anything-v2" if backbone is not None else "none (trained from scratch)",
+            })
+            writer.runtime["device"] = str(device)
+
+        result = self.run.produce(out, "model", write, inputs=[capture_artifact, calibration_artifact],
+                                  source_files=sources)
+        checkpoint.unlink(missing_ok=True)
+        return result
+
+    # ------------------------------------------------------------------------------ predict
+    def predict(self, capture_path: Path, calibration_path: Path, model_path: Path | None, seq: str, out: Path,
+                method: str | None = None, backbone: Path | None = None) -> Path:
+        from egorelight_cli.runtime import resolve_device
+
+        capture, capture_artifact, calibration, calibration_artifact = load_inputs(capture_path, calibration_path)
+        cfg = self.run.config()
+        method = method or str(cfg.predict.method)
+        if method not in ed.METHODS:
+            raise EgorelightError(f"unknown egodepth method {method!r}; expected one of {', '.join(ed.METHODS)}")
+        roles = tuple(cfg.roles)
+        sequence = capture.sequence(seq)
+        ed.check_roles(capture, sequence, roles)
+        inputs = [capture_artifact, calibration_artifact]
+        model = masks = extra = None
+        if method == "net":
+            if model_path is None:
+                raise EgorelightError("egodepth --method net needs --model (a `train egodepth` artifact)")
+            model, masks, extra, model_artifact = load_depth_model(model_path, roles)
+            inputs.append(model_artifact)
+            for role in roles:
+                c = capture.ego_camera(role)
+                if masks[role].shape != (c.height, c.width):
+                    raise EgorelightError(f"egodepth model was trained on {masks[role].shape[1]}x{masks[role].shape[0]} "
+                                          f"{role} images, the capture has {c.width}x{c.height}", model_path)
+            if model.prior_channels and backbone is None:
+                raise EgorelightError("this egodepth model was trained with a Depth-Anything-V2 backbone: pass --backbone")
+        device = resolve_device(self.run.device)
+        prior = _prior(backbone, device) if model is not None and model.prior_channels else None
+        frames, posed = ed.usable_frames(calibration, sequence, roles)
+
+        def write(writer: ArtifactWriter, cfg: Config) -> None:
+            if writer.single_file:
+                raise EgorelightError("a pointcloud artifact is a directory (it holds depth EXRs): give --out a directory",
+                                      out)
+            _predict_sequence(writer, cfg, capture, calibration, sequence, roles, frames, posed, method, model, masks,
+                              device, prior)
+
+        return self.run.produce(out, "pointcloud", write, inputs=inputs,
+                                source_files=[backbone / "config.json"] if backbone is not None else [])
+
+
+def _predict_sequence(writer: ArtifactWriter, cfg: Config, capture: Capture, calibration: Calibration, sequence,
+                      roles, frames: np.ndarray, posed: np.ndarray, method: str, model, masks, device, prior) -> None:
+    from egorelight_cli.io.exr import write_exr
+    from egorelight_cli.io.images import write_image
+    from egorelight_cli.io.pointcloud import PointCloudSequence, save_pointcloud
+
+    settings = ed.PredictSettings.from_config(cfg)
+    ray_maps = {r: ed.camera_ray_map(capture.ego_camera(r)) for r in roles}
+    model = model.to(device) if model is not None else None
+    sgbm = ed.SGBMDepth(capture, calibration, roles, cfg) if method == "sgbm" or bool(cfg.eval.compare_sgbm) else None
+    truth = ed.GroundTruth(capture, sequence, float(cfg.eval.occluder_margin_m))
+    rng = np.random.default_rng(int(cfg.seed))
+    P = int(cfg.pointcloud.points)
+    k = int(cfg.pointcloud.normal_neighbours)
+    T = len(frames)
+    points = np.zeros((T, P, 3), np.float32)
+    normals = np.zeros((T, P, 3), np.float32)
+    valid = np.zeros((T, P), bool)
+    errors = {"": ed.DepthErrors()}
+    if method == "net" and sgbm is not None:
+        errors["sgbm_"] = ed.DepthErrors()
+    timing = {"depth_s": 0.0, "pointcloud_s": 0.0}
+    preview_rows, cloud_preview = [], None
+    preview_at = set(np.linspace(0, T - 1, max(min(int(cfg.preview.frames), T), 1)).round().astype(int).tolist())
+    for t in console.progress(range(T), total=T, desc=f"egodepth {sequence.name}"):
+        f = int(frames[t])
+        if not posed[t]:
+            continue
+        views = [ed.load_view(capture, calibration, sequence, r, f) for r in roles]
+        started = time.perf_counter()
+        if method == "net":
+            ranges = ed.predict_ranges_net(model, views, ray_maps, masks, settings, device, prior)
+        else:
+            ranges = sgbm(views, ray_maps, settings)
+        timing["depth_s"] += time.perf_counter() - started
+        started = time.perf_counter()
+        points[t], normals[t], valid[t], depths = ed.frame_pointcloud(views, ranges, ray_maps, P, k, rng)
+        timing["pointcloud_s"] += time.perf_counter() - started
+        for role, depth in depths.items():
+            write_exr(writer.path(f"depth/{role}/{frame_file(f, '.exr')}"), {"Z": depth})
+        truth_maps = distance = None
+        if truth.has(f):
+            surface, truth_maps = truth.frame(f, views)
+            distance = surface(points[t][valid[t]])
+            constant = float(np.exp(float(model.log_range_mean))) if model is not None else None
+            _score(errors[""], ranges, truth_maps, distance, constant)
+            if "sgbm_" in errors:
+                other = sgbm(views, ray_maps, settings)
+                other_points, _, other_valid, _ = ed.frame_pointcloud(views, other, ray_maps, P, k, rng)
+                _score(errors["sgbm_"], other, truth_maps, surface(other_points[other_valid]))
+        if t in preview_at:
+            preview_rows.append(ed.depth_preview_row(views, ranges, truth_maps, int(cfg.preview.scale)))
+            if cloud_preview is None:
+                mesh = None
+                if truth.has(f):
+                    i = int(np.nonzero(truth.frame_ids == f)[0][0])
+                    mesh = (truth.vertices[i], truth.faces)
+                cloud_preview = ed.pointcloud_preview(points[t][valid[t]], normals[t][valid[t]], distance, mesh, int(cfg.preview.width),
+                                                      int(cfg.preview.height))
+    fps = sequence.fps if "fps" in sequence.doc else None
+    save_pointcloud(writer, PointCloudSequence(points, normals, valid, frames, fps), method=method,
+                    sequence=sequence.name, roles=list(roles))
+    if preview_rows:
+        width = max(r.shape[1] for r in preview_rows)
+        rows = [np.pad(r, ((0, 0), (0, width - r.shape[1]), (0, 0)), constant_values=255) for r in preview_rows]
+        write_image(writer.path(PREVIEW_PNG), np.concatenate(rows, axis=0))
+    if cloud_preview is not None:
+        write_image(writer.path(POINTCLOUD_PREVIEW_PNG), cloud_preview)
+    done = int(posed.sum())
+    writer.metrics.update({"method": method, "sequence": sequence.name, "frames": T, "frames_without_pose": T - done,
+                           "points_per_frame": P, "mean_valid_points": float(valid.sum(axis=1)[posed].mean()) if done else 0.0})
+    if truth.available:
+        for prefix, e in errors.items():
+            writer.metrics.update(e.metrics(prefix))
+    writer.timing.update({"depth_ms_per_frame": round(1000 * timing["depth_s"] / max(done, 1), 2),
+                          "pointcloud_ms_per_frame": round(1000 * timing["pointcloud_s"] / max(done, 1), 2)})
+    writer.units.update({"depth": "m (axial z, EXR channel Z)", "points": "m"})
+
+
+def _score(errors: "ed.DepthErrors", ranges: dict, truth_maps: dict, distance: np.ndarray,
+           constant: float | None = None) -> None:
+    for role, (true_range, mask) in truth_maps.items():
+        errors.add_depth(ranges[role], true_range, mask, constant)
+    errors.surface.append(distance)
