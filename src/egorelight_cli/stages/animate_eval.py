@@ -6,8 +6,8 @@ experiments while the ``egodepth`` stage is not available.
 
 * :func:`ego_visible_vertices`: which ground-truth vertices the down-facing ego cameras see
   (inside the image, facing the camera, not occluded: an Embree ray cast per vertex);
-* :func:`point_to_surface_cm`: distance of predicted vertices to the true surface (exact
-  point-triangle distances with trimesh, candidates from a KD-tree);
+* :func:`point_to_surface_cm`: distance of predicted vertices to the true surface (exact,
+  :class:`~egorelight_cli.geometry.pointcloud_ops.SurfaceDistance`);
 * :func:`groundtruth_pointcloud`: ray-cast the true mesh from the down cameras, add noise along
   the rays, and return a :class:`~egorelight_cli.io.pointcloud.PointCloudSequence`.
 """
@@ -21,6 +21,7 @@ import numpy as np
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.geometry.cameras import Camera, camera_rays_world, invert_rigid, project_world
 from egorelight_cli.geometry.normals import face_normals, vertex_normals
+from egorelight_cli.geometry.pointcloud_ops import SurfaceDistance
 from egorelight_cli.geometry.raycast import RayCaster
 from egorelight_cli.io.capture import Capture
 from egorelight_cli.io.mesh_sequence import MeshSequence, read_meshes_npz
@@ -72,33 +73,9 @@ def ego_visible_vertices(vertices: np.ndarray, faces: np.ndarray, cameras: list[
     return visible
 
 
-def point_to_surface_cm(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray, candidates: int = 8) -> np.ndarray:
-    """(P,) distances (cm) from points to a triangle mesh.
-
-    Exact point-triangle distances (``trimesh.triangles.closest_point``) against the faces around
-    the ``candidates`` nearest mesh vertices of each point (trimesh's own
-    ``proximity.closest_point`` needs the ``rtree`` package, which is not installed here). For a
-    mesh whose triangles are small compared with the distances measured this is the true
-    closest-point distance.
-    """
-    import trimesh
-    from scipy.spatial import cKDTree
-
-    vertices = np.asarray(vertices, np.float64)
-    faces = np.asarray(faces, np.int64)
-    points = np.asarray(points, np.float64)
-    mesh = trimesh.Trimesh(vertices, faces, process=False)
-    vertex_faces = mesh.vertex_faces  # (V, max valence), -1 padded
-    _, near = cKDTree(vertices).query(points, k=min(candidates, len(vertices)))
-    cand = vertex_faces[near.reshape(len(points), -1)].reshape(len(points), -1)  # (P, C)
-    rows, cols = np.nonzero(cand >= 0)
-    pair = np.unique(rows * len(faces) + cand[rows, cols])  # each (point, face) once
-    rows, face = np.divmod(pair, len(faces))
-    closest = trimesh.triangles.closest_point(vertices[faces[face]], points[rows])
-    dist = np.linalg.norm(closest - points[rows], axis=1)
-    best = np.full(len(points), np.inf)
-    np.minimum.at(best, rows, dist)
-    return 100.0 * best
+def point_to_surface_cm(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(P,) exact distances (cm) from points (P,3) to the triangle mesh (vertices, faces)."""
+    return 100.0 * SurfaceDistance(vertices, faces)(points)
 
 
 def score_meshes(predicted: dict[str, np.ndarray], frame_ids: np.ndarray, truth: MeshSequence,

@@ -1,0 +1,629 @@
+"""Egocentric pose estimation (paper Sec. "Egocentric Pose Estimator"): the stereo down-facing
+fisheye images of the HMD and its head pose -> 57 world keypoints per frame.
+
+The network is :class:`~egorelight_cli.nn.egopose_net.EgoPoseNet` (FRAME adapted). This module
+holds what is around it, callable without the CLI:
+
+* :func:`load_frames`: the two down-facing views of a sequence at the network's input size,
+  their head poses (``H = T_world_from_hmd`` from the calibration; for ``wild`` without aligned
+  poses, the capture's own tracker poses) and which frames are usable.
+* :func:`train_egopose`: per-person training on ``ego_train`` supervised by its markerless mocap
+  (content frames only: the prefix is the sync flash code). Phase 1 fits the per-frame network
+  with losses on the 2D heatmap positions (mocap projected into each view), the ranges, each
+  view's 3D keypoints and the fused 3D keypoints; hand joints are re-weighted
+  (``train.hand_weight``). Colour jitter in brightness, contrast, saturation and hue
+  (``train.colour_jitter``) is the paper's key finding: it is what makes the estimator survive
+  the unseen test lighting. Phase 2 fits the temporal module on windows of the frozen per-frame
+  estimates of several jittered copies of the training frames (plus noise). Both phases
+  checkpoint and resume (:func:`egorelight_cli.nn.training.train`). The last
+  ``train.validation_fraction`` of the frames (a contiguous block, so no near-duplicates of
+  training frames) is held out: it gives the validation MPJPE against the mocap and fits, per
+  joint, how much to trust the estimate over the training mean pose (``train.prior_blend``).
+  With ~30 training frames the network memorises the legs, which the down-facing cameras
+  barely see behind the torso; the blend moves them towards the mean pose and keeps the hands.
+* :func:`predict`: per-frame estimates, temporal refinement, confidences (agreement of the two
+  views); frames whose head pose is flagged invalid get NaN and confidence 0, never invented.
+* :func:`keypoint_metrics`: MPJPE (cm) of body (15) and hand (42) keypoints against ground truth.
+* :func:`preview_image`: predicted (red) and ground-truth (green) keypoints drawn on the ego images.
+
+Frame ids are studio (master-clock) ids; the ego image of frame ``f`` is ego frame
+``f + stream_offset``. ``wild`` has no studio stream: ego ids, offset 0.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+import torch
+
+from egorelight_cli import console
+from egorelight_cli.config import Config
+from egorelight_cli.errors import EgorelightError
+from egorelight_cli.geometry.cameras import project
+from egorelight_cli.io.calibration import Calibration, HeadPoses
+from egorelight_cli.io.capture import Capture, SequenceInfo
+from egorelight_cli.io.keypoints import Keypoints
+from egorelight_cli.nn.egopose_net import (EgoPoseNet, RigGeometry, heading_frame, invert_rigid_t, project_keypoints,
+                                           range_log_init, transform, windows)
+from egorelight_cli.structures.keypoints import (BODY_KEYPOINTS, BODY_SLICE, FINGER_SEGMENTS, FINGERS, KEYPOINT_NAMES,
+                                                 NUM_KEYPOINTS)
+
+EGOPOSE_MODEL_TYPE = "egopose"
+DOWN_ROLES = ("down_left", "down_right")
+HANDS_SLICE = slice(len(BODY_KEYPOINTS), NUM_KEYPOINTS)
+
+
+# ----------------------------------------------------------------------------------- settings
+@dataclass(frozen=True)
+class EgoPoseSettings:
+    """The resolved ``stages/egopose.yaml`` (see the comments there)."""
+
+    cfg: Config
+
+    @property
+    def net(self) -> Config:
+        return self.cfg.net
+
+    @property
+    def train(self) -> Config:
+        return self.cfg.train
+
+    def architecture(self) -> dict:
+        net = self.net
+        return {"num_joints": NUM_KEYPOINTS, "channels": int(net.channels), "levels": int(net.levels),
+                "window": int(net.window), "temporal_hidden": int(net.temporal_hidden), "num_views": len(DOWN_ROLES),
+                "tied": [list(pair) for pair in tied_keypoints()]}
+
+    def joint_weights(self) -> torch.Tensor:
+        """(J,) loss weight per keypoint: 1 for body, ``train.hand_weight`` for hand joints."""
+        weights = torch.ones(NUM_KEYPOINTS)
+        weights[HANDS_SLICE] = float(self.train.hand_weight)
+        return weights / weights.mean()
+
+
+def tied_keypoints() -> list[tuple[int, int]]:
+    """Keypoint index pairs that are one point: each body wrist and its hand's wrist."""
+    return [(KEYPOINT_NAMES.index(f"{side}Hand"), KEYPOINT_NAMES.index(f"{side}HandWrist")) for side in ("Left", "Right")]
+
+
+def input_size(width: int, height: int, size: int) -> tuple[int, int]:
+    """Network input (width, height): ``size`` wide, aspect kept, both multiples of 4."""
+    w = max(4, int(size) // 4 * 4)
+    h = max(4, int(round(size * height / width / 4)) * 4)
+    return w, h
+
+
+# -------------------------------------------------------------------------------------- frames
+@dataclass
+class EgoFrames:
+    """The down-facing views of one sequence, as the network reads them.
+
+    Attributes:
+        sequence: sequence name.
+        frame_ids: (T,) int64 master-clock ids (wild: ego ids).
+        ego_ids: (T,) int64 ego frame ids.
+        images: (T,V,3,h,w) uint8 tensor at the network input size.
+        T_world_from_hmd: (T,4,4) float64 (identity where invalid).
+        valid: (T,) bool head pose valid.
+        content: (T,) bool after the sync prefix (wild: all).
+        head_pose_source: ``calibration`` or ``tracker``.
+        fps: frame rate of the sequence.
+    """
+
+    sequence: str
+    frame_ids: np.ndarray
+    ego_ids: np.ndarray
+    images: torch.Tensor
+    T_world_from_hmd: np.ndarray
+    valid: np.ndarray
+    content: np.ndarray
+    head_pose_source: str = "calibration"
+    fps: float | None = None
+
+    @property
+    def usable(self) -> np.ndarray:
+        """Frames the temporal module may look at: valid head pose and content."""
+        return self.valid & self.content
+
+    def select(self, rows: np.ndarray) -> "EgoFrames":
+        return EgoFrames(self.sequence, self.frame_ids[rows], self.ego_ids[rows], self.images[torch.as_tensor(rows)],
+                         self.T_world_from_hmd[rows], self.valid[rows], self.content[rows], self.head_pose_source,
+                         self.fps)
+
+
+def check_down_cameras(capture: Capture, calibration: Calibration) -> None:
+    """Both down-facing cameras must be fisheye, of one size, and hand-eye calibrated."""
+    sizes = set()
+    for role in DOWN_ROLES:
+        camera = capture.ego_camera(role)
+        if camera.model != "fisheye":
+            raise EgorelightError(f"egopose expects fisheye down-facing cameras; {role} is {camera.model}",
+                                  capture.root / "rig" / "hmd.json")
+        sizes.add((camera.width, camera.height))
+        if role not in calibration.ego_cameras:
+            raise EgorelightError(f"calibration has no hand-eye transform for {role}")
+    if len(sizes) != 1:
+        raise EgorelightError(f"down-facing cameras differ in size: {sorted(sizes)}", capture.root / "rig" / "hmd.json")
+
+
+def rig_geometry(capture: Capture, calibration: Calibration) -> RigGeometry:
+    """The two down-facing views: intrinsics from the capture rig, hand-eye from calibration."""
+    check_down_cameras(capture, calibration)
+    cams = [capture.ego_camera(r) for r in DOWN_ROLES]
+    dist = np.zeros((len(cams), 4))
+    for i, cam in enumerate(cams):
+        dist[i, :cam.dist.size] = cam.dist
+    T_hmd_from_cam = np.stack([np.linalg.inv(calibration.ego_cameras[r].T_cam_from_hmd) for r in DOWN_ROLES])
+    return RigGeometry(torch.tensor(np.stack([c.K for c in cams]), dtype=torch.float32),
+                       torch.tensor(dist, dtype=torch.float32), cams[0].width, cams[0].height,
+                       torch.tensor(T_hmd_from_cam, dtype=torch.float32))
+
+
+def head_poses_for(capture: Capture, calibration: Calibration, info: SequenceInfo) -> tuple[HeadPoses, str]:
+    """The sequence's head poses: the calibration's, else (sequences with a tracker stream,
+    i.e. ``wild``) the capture's own ``head_pose.npz`` in the tracker's world frame."""
+    if info.name in calibration.head_poses:
+        return calibration.head_poses[info.name], "calibration"
+    if info.streams.get("head_pose") and info.head_pose_path().is_file():
+        from egorelight_cli.io.npz import read_npz
+
+        arrays, _ = read_npz(info.head_pose_path())
+        T = np.asarray(arrays["T_world_from_hmd"], np.float64)
+        ids = np.asarray(arrays["frame_ids"], np.int64)
+        finite = np.isfinite(T).all(axis=(1, 2))
+        console.info(f"egopose: calibration has no head poses for {info.name!r}; using the capture's tracker poses")
+        return HeadPoses(np.where(finite[:, None, None], T, np.eye(4)), ids, finite, np.zeros(len(ids), np.int64),
+                         np.zeros(len(ids))), "tracker"
+    raise EgorelightError(f"calibration has no head poses for sequence {info.name!r} "
+                          f"(has {', '.join(sorted(calibration.head_poses)) or 'none'}); run calibrate on it")
+
+
+def load_frames(capture: Capture, calibration: Calibration, sequence: str, size: int,
+                only_content: bool = False) -> EgoFrames:
+    """Read the down-facing views of ``sequence`` at input width ``size`` (see :class:`EgoFrames`).
+
+    Frames without an ego image of either view are left out; ``only_content`` keeps only the
+    frames after the sync prefix."""
+    info = capture.sequence(sequence)
+    info.require_stream("ego")
+    missing = [r for r in DOWN_ROLES if r not in info.ego_roles]
+    if missing:
+        raise EgorelightError(f"sequence {sequence!r} has no {', '.join(missing)} ego stream", info.root / "sequence.json")
+    if len(info.frame_ids):
+        if sequence not in calibration.stream_offsets:
+            raise EgorelightError(f"calibration has no stream offset for sequence {sequence!r}")
+        ids = info.frame_ids
+        offset = int(calibration.stream_offsets[sequence])
+        content_ids = info.content_frame_ids
+    else:
+        ids, offset = info.ego_frame_ids, 0
+        content_ids = info.content_frame_ids if len(info.content_frame_ids) else ids
+    ego_ids = ids + offset
+    keep = np.isin(ego_ids, info.ego_frame_ids)
+    if only_content:
+        keep &= np.isin(ids, content_ids)
+    ids, ego_ids = ids[keep], ego_ids[keep]
+    if len(ids) == 0:
+        raise EgorelightError(f"sequence {sequence!r} has no frames with ego images", info.root / "sequence.json")
+    poses, source = head_poses_for(capture, calibration, info)
+    lookup = {int(f): i for i, f in enumerate(poses.frame_ids)}
+    T = np.tile(np.eye(4), (len(ids), 1, 1))
+    valid = np.zeros(len(ids), bool)
+    for row, frame in enumerate(ids):
+        i = lookup.get(int(frame))
+        if i is not None and poses.valid[i]:
+            T[row], valid[row] = poses.T_world_from_hmd[i], True
+    camera = capture.ego_camera(DOWN_ROLES[0])
+    w, h = input_size(camera.width, camera.height, size)
+    images = np.empty((len(ids), len(DOWN_ROLES), 3, h, w), np.uint8)
+    for row, ego in enumerate(ego_ids):
+        for v, role in enumerate(DOWN_ROLES):
+            image = info.read_ego_image(role, int(ego))
+            images[row, v] = cv2.resize(image, (w, h), interpolation=cv2.INTER_AREA).transpose(2, 0, 1)
+    fps = float(info.doc["fps"]) if info.doc.get("fps") else None
+    return EgoFrames(sequence, ids, ego_ids, torch.from_numpy(images), T, valid, np.isin(ids, content_ids), source, fps)
+
+
+def as_float_images(images: torch.Tensor) -> torch.Tensor:
+    return images.to(torch.float32) / 255.0
+
+
+# ------------------------------------------------------------------------------------ training
+@dataclass
+class Targets:
+    """Mocap supervision of N training frames (rows of the training :class:`EgoFrames`).
+
+    ``world`` (N,J,3), ``hmd`` (N,J,3), ``confidence`` (N,J), per view ``pixels`` (N,V,J,2),
+    ``inside`` (N,V,J) bool, ``ranges`` (N,V,J) metres.
+    """
+
+    world: torch.Tensor
+    hmd: torch.Tensor
+    confidence: torch.Tensor
+    pixels: torch.Tensor
+    inside: torch.Tensor
+    ranges: torch.Tensor
+
+
+def make_targets(frames: EgoFrames, mocap: Keypoints, rig: RigGeometry) -> Targets:
+    """Mocap keypoints of the frames into the HMD frame and each view (projection + range)."""
+    rows = np.searchsorted(mocap.frame_ids, frames.frame_ids)
+    rows = np.clip(rows, 0, len(mocap.frame_ids) - 1)
+    if not np.array_equal(mocap.frame_ids[rows], frames.frame_ids):
+        raise EgorelightError("mocap lacks some training frames")
+    world = torch.tensor(np.nan_to_num(mocap.xyz[rows]), dtype=torch.float32)
+    conf = torch.tensor(mocap.confidence[rows], dtype=torch.float32)
+    T_hmd_from_world = invert_rigid_t(torch.tensor(frames.T_world_from_hmd, dtype=torch.float32))
+    hmd = transform(T_hmd_from_world, world)
+    cam = transform(rig.T_cam_from_hmd[None], hmd[:, None].expand(-1, rig.K.shape[0], -1, -1))
+    pixels, inside = project_keypoints(cam, rig)
+    inside = inside & (conf[:, None] > 0)
+    return Targets(world, hmd, conf, torch.nan_to_num(pixels), inside, torch.linalg.vector_norm(cam, dim=-1))
+
+
+def frame_losses(out: dict[str, torch.Tensor], target: Targets, rows: torch.Tensor, rig: RigGeometry,
+                 joint_weights: torch.Tensor, weights: Config) -> dict[str, torch.Tensor]:
+    """Phase-1 losses (2D heatmap position, log range, per-view 3D, fused 3D) of a batch."""
+    conf = target.confidence[rows] * joint_weights  # (B,J)
+    norm = conf.sum().clamp_min(1e-6)
+    inside = target.inside[rows].to(conf.dtype) * conf[:, None]
+    pix = (out["pixels"] - target.pixels[rows]).abs().sum(-1) / max(rig.width, rig.height)
+    heat = (pix * inside).sum() / inside.sum().clamp_min(1e-6)
+    rng = ((out["ranges"].log() - target.ranges[rows].log()).abs() * conf[:, None]).sum() / (norm * out["ranges"].shape[1])
+    view = (torch.linalg.vector_norm(out["points_hmd"] - target.hmd[rows][:, None], dim=-1) * conf[:, None]).sum() \
+        / (norm * out["ranges"].shape[1])
+    fused = (torch.linalg.vector_norm(out["fused_hmd"] - target.hmd[rows], dim=-1) * conf).sum() / norm
+    loss = (float(weights.heatmap) * heat + float(weights.range) * rng + float(weights.view3d) * view
+            + float(weights.fused3d) * fused)
+    return {"loss": loss, "heatmap_px_frac": heat.detach(), "log_range": rng.detach(), "view3d_m": view.detach(),
+            "fused3d_m": fused.detach()}
+
+
+def jitter_images(images: torch.Tensor, settings: EgoPoseSettings, generator: torch.Generator,
+                  enabled: bool) -> torch.Tensor:
+    """(B,V,3,h,w) float images, each view with its own colour-jitter draw when ``enabled``."""
+    if not enabled:
+        return images
+    from egorelight_cli.nn.augment import ColourJitter
+
+    j = settings.train.jitter
+    jitter = ColourJitter(float(j.brightness), float(j.contrast), float(j.saturation), float(j.hue))
+    return jitter(images.flatten(0, 1), generator=generator).reshape(images.shape)
+
+
+def occlude_and_noise(images: torch.Tensor, settings: EgoPoseSettings, generator: torch.Generator) -> torch.Tensor:
+    """(B,V,3,h,w) images with, per view, a random grey rectangle (probability
+    ``train.augment.occlusion``, sides up to ``max_occluder`` of the image) and Gaussian pixel
+    noise of up to ``train.augment.noise`` (robustness to occluding hands and sensor noise)."""
+    aug = settings.train.augment
+    if float(aug.occlusion) <= 0 and float(aug.noise) <= 0:
+        return images
+    B, V, _, h, w = images.shape
+    out = images.clone()
+    draws = torch.rand(B * V, 6, generator=generator)
+    flat = out.view(B * V, 3, h, w)
+    for i, (p, sx, sy, cx, cy, shade) in enumerate(draws.tolist()):
+        if p < float(aug.occlusion):
+            rw, rh = max(1, int(sx * float(aug.max_occluder) * w)), max(1, int(sy * float(aug.max_occluder) * h))
+            x0, y0 = int(cx * (w - rw)), int(cy * (h - rh))
+            flat[i, :, y0:y0 + rh, x0:x0 + rw] = shade
+    sigma = torch.rand(B * V, 1, 1, 1, generator=generator) * float(aug.noise)
+    flat += sigma * torch.randn(flat.shape, generator=generator)
+    return out.clamp(0.0, 1.0)
+
+
+@dataclass
+class TrainResult:
+    """A trained network and what describes it."""
+
+    net: EgoPoseNet
+    curve: list[dict] = field(default_factory=list)
+    mean_pose_heading: np.ndarray | None = None  # (J,3) training mean pose in the heading frame
+    info: dict = field(default_factory=dict)
+    frame_ids: np.ndarray | None = None  # the frames trained on (held-out ones excluded)
+
+
+def train_egopose(frames: EgoFrames, mocap: Keypoints, rig: RigGeometry, settings: EgoPoseSettings,
+                  checkpoint_dir=None, backbone_state: dict | None = None) -> TrainResult:
+    """Train on the usable content frames of ``frames`` (see the module docstring)."""
+    from egorelight_cli.nn.egopose_net import load_backbone_weights
+    from egorelight_cli.nn.training import train
+
+    train_cfg = settings.train
+    seed = int(settings.cfg.seed) if "seed" in settings.cfg else 0
+    torch.manual_seed(seed)
+    rows = np.nonzero(frames.usable & np.isin(frames.frame_ids, mocap.frame_ids))[0]
+    if len(rows) == 0:
+        raise EgorelightError(f"no training frames: sequence {frames.sequence!r} has no content frame with a valid "
+                              "head pose, both ego views and mocap")
+    held_out = validation_count(len(rows), float(train_cfg.validation_fraction), int(train_cfg.min_validation_frames))
+    val_rows, rows = rows[len(rows) - held_out:], rows[:len(rows) - held_out]
+    data = frames.select(rows)
+    target = make_targets(data, mocap, rig)
+    net = EgoPoseNet(**settings.architecture())
+    net.log_range0.copy_(range_log_init(target.ranges, target.confidence[:, None].expand_as(target.ranges) > 0))
+    info: dict = {"training_frames": int(len(rows)), "validation_frames": int(held_out),
+                  "colour_jitter": bool(train_cfg.colour_jitter)}
+    if backbone_state is not None:
+        info["backbone_tensors_loaded"] = load_backbone_weights(net, backbone_state)
+        if info["backbone_tensors_loaded"] == 0:
+            raise EgorelightError("--backbone-weights holds no tensor that fits the egopose encoder")
+    joint_weights = settings.joint_weights()
+    images = as_float_images(data.images)
+    jitter_on = bool(train_cfg.colour_jitter)
+    batch = min(int(train_cfg.batch), len(rows))
+    steps = int(train_cfg.steps)
+    lr = float(train_cfg.lr)
+
+    def step_fn(step: int) -> dict[str, torch.Tensor]:
+        for group in optimizer.param_groups:  # step-decay schedule as a function of the step: exact on resume
+            group["lr"] = lr * (0.3 ** ((step >= 0.7 * steps) + (step >= 0.9 * steps)))
+        g = torch.Generator().manual_seed(seed * 1_000_003 + step)
+        pick = torch.randint(len(rows), (batch,), generator=g)
+        x = occlude_and_noise(jitter_images(images[pick], settings, g, jitter_on), settings, g)
+        return frame_losses(net.forward_frames(x, rig), target, pick, rig, joint_weights, train_cfg.weights)
+
+    optimizer = torch.optim.Adam(net.parameters(), lr=lr)
+    ckpt = None if checkpoint_dir is None else checkpoint_dir / "frame.pt"
+    curve = train(net, optimizer, step_fn, steps, checkpoint=ckpt, checkpoint_every=int(train_cfg.checkpoint_every),
+                  log_every=int(train_cfg.log_every), desc="egopose per-frame")
+    curve += _train_temporal(net, images, data, target, rig, settings, joint_weights, seed, checkpoint_dir, steps)
+    net.eval()
+    mean_pose = to_heading(target.world, data.T_world_from_hmd, target.confidence)
+    net.prior_heading.copy_(torch.as_tensor(mean_pose))
+    if held_out:
+        info.update(_validate(net, frames.select(val_rows), mocap, rig, settings, mean_pose))
+    return TrainResult(net, curve, mean_pose, info, data.frame_ids)
+
+
+def validation_count(num_frames: int, fraction: float, minimum: int) -> int:
+    """Frames held out at the end of the training sequence: ``fraction`` of them, at least
+    ``minimum``, and none when fewer than ``3 * minimum`` frames exist."""
+    if fraction <= 0 or num_frames < 3 * minimum:
+        return 0
+    return max(int(round(fraction * num_frames)), minimum)
+
+
+def to_heading(world: torch.Tensor, T_world_from_hmd: np.ndarray, confidence: torch.Tensor | None = None) -> np.ndarray:
+    """(J,3) confidence-weighted mean over frames of (N,J,3) world keypoints, each frame moved
+    into its heading frame."""
+    T_heading = heading_frame(torch.tensor(T_world_from_hmd, dtype=torch.float32))
+    local = transform(invert_rigid_t(T_heading), world.to(torch.float32))
+    w = (torch.ones(local.shape[:2]) if confidence is None else confidence)[..., None]
+    return ((local * w).sum(0) / w.sum(0).clamp_min(1e-6)).numpy()
+
+
+def fit_prior_blend(pred: np.ndarray, truth: np.ndarray, prior: np.ndarray, T_world_from_hmd: np.ndarray) -> np.ndarray:
+    """(J,) least-squares blend ``a`` in [0,1] of ``a * pred + (1 - a) * prior`` against ``truth``
+    (pred, truth (N,J,3) world; prior (J,3) heading frame) on held-out frames."""
+    T_from_world = invert_rigid_t(heading_frame(torch.tensor(T_world_from_hmd, dtype=torch.float32)))
+    p = transform(T_from_world, torch.tensor(pred, dtype=torch.float32)).numpy() - prior
+    t = transform(T_from_world, torch.tensor(truth, dtype=torch.float32)).numpy() - prior
+    num = np.nansum((p * t).sum(-1), axis=0)
+    den = np.nansum((p * p).sum(-1), axis=0)
+    return np.clip(num / np.maximum(den, 1e-12), 0.0, 1.0).astype(np.float32)
+
+
+def _validate(net: EgoPoseNet, frames: EgoFrames, mocap: Keypoints, rig: RigGeometry, settings: EgoPoseSettings,
+              mean_pose: np.ndarray) -> dict:
+    """MPJPE (cm) vs the mocap on the held-out frames; fits the pose-prior blend there when
+    ``train.prior_blend`` (metrics before and after)."""
+    sigma = float(settings.cfg.confidence_sigma_m)
+    truth = mocap.xyz[np.searchsorted(mocap.frame_ids, frames.frame_ids)]
+    before = predict(net, frames, rig, sigma)
+    metrics = keypoint_metrics(before.keypoints.xyz, frames.frame_ids, mocap, frames.usable, "validation_")
+    base = keypoint_metrics(mean_pose_keypoints(mean_pose, frames), frames.frame_ids, mocap, frames.usable,
+                            "validation_mean_pose_")
+    metrics.update({k: v for k, v in base.items() if not k.endswith("scored_frames")})
+    if bool(settings.train.prior_blend):
+        blend = fit_prior_blend(before.keypoints.xyz, truth, mean_pose, frames.T_world_from_hmd)
+        net.prior_blend.copy_(torch.as_tensor(blend))
+        after = predict(net, frames, rig, sigma)
+        blended = keypoint_metrics(after.keypoints.xyz, frames.frame_ids, mocap, frames.usable, "validation_blended_")
+        metrics.update({k: v for k, v in blended.items() if not k.endswith("scored_frames")})
+        metrics.update({"prior_blend_body_mean": round(float(blend[BODY_SLICE].mean()), 3),
+                        "prior_blend_hands_mean": round(float(blend[HANDS_SLICE].mean()), 3)})
+    return metrics
+
+
+def _train_temporal(net: EgoPoseNet, images: torch.Tensor, data: EgoFrames, target: Targets, rig: RigGeometry,
+                    settings: EgoPoseSettings, joint_weights: torch.Tensor, seed: int, checkpoint_dir,
+                    step_offset: int) -> list[dict]:
+    """Phase 2: the temporal module on windows of frozen per-frame estimates (jittered copies)."""
+    from egorelight_cli.nn.training import train
+
+    cfg = settings.train.temporal
+    steps = int(cfg.steps)
+    if net.window <= 1 or steps <= 0:
+        return []
+    net.eval()
+    copies = []
+    H = torch.tensor(data.T_world_from_hmd, dtype=torch.float32)
+    with torch.no_grad():
+        for copy in range(max(int(cfg.copies), 1)):
+            g = torch.Generator().manual_seed(seed * 7919 + copy)
+            fused = []
+            for start in range(0, len(images), 8):
+                x = jitter_images(images[start:start + 8], settings, g, bool(settings.train.colour_jitter) and copy > 0)
+                fused.append(net.forward_frames(x, rig)["fused_hmd"])
+            copies.append(transform(H, torch.cat(fused)))
+    cached = torch.stack(copies)  # (C,N,J,3) world
+    idx = windows(len(images), net.window)  # training rows are consecutive usable frames
+    noise = float(cfg.noise_m)
+    batch = min(int(settings.train.batch) * 4, len(images))
+
+    def step_fn(step: int) -> dict[str, torch.Tensor]:
+        g = torch.Generator().manual_seed(seed * 15485863 + step)
+        pick = torch.randint(len(images), (batch,), generator=g)
+        which = torch.randint(cached.shape[0], (batch, net.window), generator=g)
+        win = cached[which, idx[pick]]  # (B,W,J,3)
+        win = win + noise * torch.randn(win.shape, generator=g)
+        pred = net.refine(win, H[pick])
+        conf = target.confidence[pick] * joint_weights
+        err = (torch.linalg.vector_norm(pred - target.world[pick], dim=-1) * conf).sum() / conf.sum().clamp_min(1e-6)
+        return {"loss": err}  # metres (weighted), logged as temporal_loss
+
+    optimizer = torch.optim.Adam(net.temporal.parameters(), lr=float(cfg.lr))
+    ckpt = None if checkpoint_dir is None else checkpoint_dir / "temporal.pt"
+    curve = train(net.temporal, optimizer, step_fn, steps, checkpoint=ckpt,
+                  checkpoint_every=int(settings.train.checkpoint_every), log_every=int(settings.train.log_every),
+                  desc="egopose temporal")
+    return [{"step": row["step"] + step_offset, **{f"temporal_{k}" if k == "loss" else k: v
+                                                  for k, v in row.items() if k != "step"}} for row in curve]
+
+
+# ---------------------------------------------------------------------------------- prediction
+@dataclass
+class Prediction:
+    """Estimates of one sequence.
+
+    ``keypoints``: the output (world, confidence, frame ids); ``per_frame`` (T,J,3) fused world
+    keypoints before the temporal module (NaN where invalid); ``pixels`` (T,V,J,2) soft-argmax
+    positions in the original images.
+    """
+
+    keypoints: Keypoints
+    per_frame: np.ndarray
+    pixels: np.ndarray
+
+
+def predict(net: EgoPoseNet, frames: EgoFrames, rig: RigGeometry, confidence_sigma_m: float,
+            batch: int = 16) -> Prediction:
+    """Keypoints for every frame of ``frames`` (see the module docstring)."""
+    net.eval()
+    H = torch.tensor(frames.T_world_from_hmd, dtype=torch.float32)
+    fused, disagreement, pixels = [], [], []
+    with torch.no_grad():
+        for start in range(0, len(frames.frame_ids), batch):
+            out = net.forward_frames(as_float_images(frames.images[start:start + batch]), rig)
+            fused.append(out["fused_hmd"])
+            disagreement.append(out["disagreement"])
+            pixels.append(out["pixels"])
+        fused_world = transform(H, torch.cat(fused))
+        usable = torch.as_tensor(frames.usable)
+        idx = windows(len(frames.frame_ids), net.window, usable)
+        refined = net.refine(fused_world[idx], H)
+    spread = torch.cat(disagreement)
+    confidence = torch.exp(-0.5 * (spread / confidence_sigma_m) ** 2).clamp(1e-3, 1.0).numpy()
+    xyz = refined.numpy().astype(np.float32)
+    per_frame = fused_world.numpy().astype(np.float32)
+    invalid = ~frames.valid
+    xyz[invalid], per_frame[invalid], confidence[invalid] = np.nan, np.nan, 0.0
+    keypoints = Keypoints(xyz, confidence, frames.frame_ids, KEYPOINT_NAMES, frames.fps)
+    return Prediction(keypoints, per_frame, torch.cat(pixels).numpy())
+
+
+def mean_pose_keypoints(mean_pose_heading: np.ndarray, frames: EgoFrames) -> np.ndarray:
+    """(T,J,3) world keypoints of the training mean pose placed at each frame's heading frame
+    (the baseline a trained estimator must beat; NaN where the head pose is invalid)."""
+    T_heading = heading_frame(torch.tensor(frames.T_world_from_hmd, dtype=torch.float32))
+    xyz = transform(T_heading, torch.tensor(mean_pose_heading, dtype=torch.float32)[None]
+                    .expand(len(frames.frame_ids), -1, -1)).numpy()
+    xyz[~frames.valid] = np.nan
+    return xyz
+
+
+# ------------------------------------------------------------------------------------- metrics
+def mpjpe_cm(pred: np.ndarray, truth: np.ndarray, mask: np.ndarray | None = None) -> float:
+    """Mean per-joint position error in cm over finite (and ``mask``) entries; NaN when none."""
+    err = np.linalg.norm(np.asarray(pred, np.float64) - np.asarray(truth, np.float64), axis=-1)
+    ok = np.isfinite(err) if mask is None else np.isfinite(err) & mask
+    return float(err[ok].mean() * 100) if ok.any() else float("nan")
+
+
+def keypoint_metrics(pred: np.ndarray, frame_ids: np.ndarray, truth: Keypoints, rows_mask: np.ndarray,
+                     prefix: str = "") -> dict[str, float]:
+    """MPJPE (cm) of body, hands and all keypoints on frames ``rows_mask`` (T,) of ``pred``
+    (T,J,3) that the ground truth ``truth`` also holds."""
+    common, pred_rows, truth_rows = np.intersect1d(frame_ids, truth.frame_ids, return_indices=True)
+    keep = rows_mask[pred_rows]
+    p, t = pred[pred_rows[keep]], truth.xyz[truth_rows[keep]]
+    metrics = {f"{prefix}mpjpe_body_cm": mpjpe_cm(p[:, BODY_SLICE], t[:, BODY_SLICE]),
+               f"{prefix}mpjpe_hands_cm": mpjpe_cm(p[:, HANDS_SLICE], t[:, HANDS_SLICE]),
+               f"{prefix}mpjpe_all_cm": mpjpe_cm(p, t)}
+    metrics[f"{prefix}scored_frames"] = int(np.isfinite(p).all(axis=(1, 2)).sum()) if len(p) else 0
+    return {k: (round(v, 3) if isinstance(v, float) and np.isfinite(v) else v) for k, v in metrics.items()}
+
+
+def groundtruth_keypoints(capture: Capture, sequence: str) -> Keypoints | None:
+    """``groundtruth/<seq>/keypoints.npz`` of a simulated capture (evaluation only), else None."""
+    from egorelight_cli.io.keypoints import read_keypoints_npz
+
+    root = capture.groundtruth_root()
+    if root is None or not (root / "groundtruth" / sequence / "keypoints.npz").is_file():
+        return None
+    return read_keypoints_npz(root / "groundtruth" / sequence / "keypoints.npz")
+
+
+def evaluate(prediction: Prediction, frames: EgoFrames, truth: Keypoints, mean_pose_heading: np.ndarray | None,
+             prefix: str = "") -> dict:
+    """Output, per-frame (no temporal module) and mean-pose-baseline MPJPE on usable frames."""
+    rows = frames.usable
+    ids = frames.frame_ids
+    metrics = keypoint_metrics(prediction.keypoints.xyz, ids, truth, rows, prefix)
+    per_frame = keypoint_metrics(prediction.per_frame, ids, truth, rows, prefix + "per_frame_")
+    metrics.update({k: v for k, v in per_frame.items() if not k.endswith("scored_frames")})
+    if mean_pose_heading is not None:
+        base = keypoint_metrics(mean_pose_keypoints(mean_pose_heading, frames), ids, truth, rows, prefix + "mean_pose_")
+        metrics.update({k: v for k, v in base.items() if not k.endswith("scored_frames")})
+    return metrics
+
+
+# ------------------------------------------------------------------------------------- preview
+def keypoint_edges() -> list[tuple[int, int]]:
+    """Pairs of keypoint indices drawn as bones (body chains, each finger from the wrist)."""
+    index = {n: i for i, n in enumerate(KEYPOINT_NAMES)}
+    pairs = [("Neck", "LeftArm"), ("Neck", "RightArm"), ("LeftUpLeg", "RightUpLeg")]
+    for side in ("Left", "Right"):
+        pairs += [(f"{side}Arm", f"{side}ForeArm"), (f"{side}ForeArm", f"{side}Hand"), ("Neck", f"{side}UpLeg"),
+                  (f"{side}UpLeg", f"{side}Leg"), (f"{side}Leg", f"{side}Foot"), (f"{side}Foot", f"{side}ToeBase")]
+        for finger in FINGERS:
+            chain = [f"{side}HandWrist"] + [f"{side}Hand{finger}{s}" for s in FINGER_SEGMENTS]
+            pairs += list(zip(chain[:-1], chain[1:]))
+    return [(index[a], index[b]) for a, b in pairs]
+
+
+def _draw(image: np.ndarray, pixels: np.ndarray, colour, scale: int) -> None:
+    """Bones and dots of (J,2) original-image pixels on an image upscaled by ``scale``."""
+    pixels = (np.asarray(pixels, np.float64) + 0.5) * scale - 0.5
+    for a, b in keypoint_edges():
+        if np.isfinite(pixels[[a, b]]).all():
+            cv2.line(image, tuple(int(round(c)) for c in pixels[a]), tuple(int(round(c)) for c in pixels[b]),
+                     colour, 1, cv2.LINE_AA)
+    for p in pixels:
+        if np.isfinite(p).all():
+            cv2.circle(image, (int(round(p[0])), int(round(p[1]))), 2, colour, -1, cv2.LINE_AA)
+
+
+def preview_image(capture: Capture, frames: EgoFrames, rig: RigGeometry, prediction: Prediction,
+                  truth: Keypoints | None, count: int, tile: int = 256) -> np.ndarray:
+    """(H,W,3) uint8: per previewed frame (row) both down-facing views with ground-truth keypoints
+    in green and predictions in red."""
+    info = capture.sequence(frames.sequence)
+    candidates = np.nonzero(frames.usable)[0] if frames.usable.any() else np.arange(len(frames.frame_ids))
+    rows = candidates[np.unique(np.linspace(0, len(candidates) - 1, max(min(count, len(candidates)), 1)).round()
+                                .astype(int))]
+    T_cam_from_hmd = rig.T_cam_from_hmd.double().numpy()
+    scale = max(1, tile // rig.width)
+    out_rows = []
+    for row in rows:
+        tiles = []
+        T_hmd_from_world = np.linalg.inv(frames.T_world_from_hmd[row])
+        sets = [(prediction.keypoints.xyz[row], (255, 40, 40))]
+        if truth is not None and frames.frame_ids[row] in truth.frame_ids:
+            sets.insert(0, (truth.xyz[np.searchsorted(truth.frame_ids, frames.frame_ids[row])], (40, 230, 40)))
+        for v, role in enumerate(DOWN_ROLES):
+            image = info.read_ego_image(role, int(frames.ego_ids[row]))
+            image = np.ascontiguousarray(cv2.resize(image, (rig.width * scale, rig.height * scale),
+                                                    interpolation=cv2.INTER_NEAREST))
+            for xyz, colour in sets:
+                cam = (np.einsum("ij,kj->ki", T_cam_from_hmd[v] @ T_hmd_from_world, np.c_[xyz, np.ones(len(xyz))]))[:, :3]
+                pixels = project(cam, rig.K[v].double().numpy(), rig.dist[v].double().numpy(), "fisheye")
+                _draw(image, np.asarray(pixels), colour, scale)
+            cv2.putText(image, f"{role} frame {int(frames.frame_ids[row])}", (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4,
+                        (255, 255, 0), 1, cv2.LINE_AA)
+            tiles.append(image)
+        out_rows.append(np.concatenate(tiles, axis=1))
+    return np.concatenate(out_rows, axis=0)

@@ -1,0 +1,219 @@
+"""The ``egorelight egopose`` and ``egorelight train egopose`` commands: load inputs, call
+:mod:`egorelight_cli.stages.egopose`, write artifacts.
+
+* ``train egopose`` writes a model artifact (:mod:`egorelight_cli.io.model` layout): ``model.pt``
+  (the :class:`~egorelight_cli.nn.egopose_net.EgoPoseNet` state dict, its constructor arguments,
+  the input size and the training mean pose in ``extra``), ``curve.json``/``curve.png``. Metrics:
+  training frames, the fit to the mocap on them (``train_*``), the held-out validation MPJPE vs
+  the mocap (``validation_*``, works on real captures), and, for a simulated capture whose
+  calibration covers ``evaluate_sequence`` (``test``), MPJPE against its ground truth there
+  (``test_*``, unseen lighting): the jitter ablation compares these (``--no-jitter``). Every
+  MPJPE comes with the mean-pose baseline (``*_mean_pose_*``). A resumable checkpoint lives next to the output in ``<out>.checkpoint/`` while training
+  (``--resume`` continues from it; without it a stale one is discarded); it is removed once the
+  model is written.
+* ``egopose`` writes a keypoints artifact (``keypoints.npz`` + ``per_frame.npz`` with the
+  estimates before the temporal module + ``preview.png``); metrics vs
+  ``groundtruth/<seq>/keypoints.npz`` when the capture has it.
+"""
+
+from __future__ import annotations
+
+import shutil
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from egorelight_cli.artifacts import Artifact, ArtifactWriter, open_artifact
+from egorelight_cli.config import Config
+from egorelight_cli.errors import EgorelightError
+from egorelight_cli.io.calibration import Calibration, read_calibration
+from egorelight_cli.io.capture import Capture
+from egorelight_cli.io.keypoints import read_keypoints_npz, save_keypoints
+from egorelight_cli.nn.egopose_net import EgoPoseNet
+from egorelight_cli.pipeline import StageRun
+from egorelight_cli.stages.egopose import (EGOPOSE_MODEL_TYPE, EgoPoseSettings, TrainResult, evaluate,
+                                           groundtruth_keypoints, load_frames, predict, preview_image, rig_geometry,
+                                           train_egopose)
+
+PREVIEW_PNG = "preview.png"
+PER_FRAME_NPZ = "per_frame.npz"
+
+
+# ---------------------------------------------------------------------------------- inputs
+def open_capture(path: Path) -> tuple[Capture, Artifact | None]:
+    """A capture directory; its manifest (when it has one) is the cache-key input."""
+    capture = Capture(path)
+    artifact = open_artifact(path, kind="capture") if (Path(path) / "manifest.json").is_file() else None
+    return capture, artifact
+
+
+def open_calibration(path: Path) -> tuple[Calibration, Artifact]:
+    artifact = open_artifact(path, kind="calibration")
+    if artifact.single_file:
+        raise EgorelightError("a calibration is a directory artifact", path)
+    return read_calibration(artifact.root), artifact
+
+
+@dataclass
+class EgoPoseModel:
+    """A trained estimator read back from a model artifact."""
+
+    net: EgoPoseNet
+    input_size: int
+    mean_pose_heading: np.ndarray | None
+    extra: dict
+
+
+def load_egopose_model(path: Path) -> tuple[EgoPoseModel, Artifact]:
+    """Read an egopose model artifact (kind model, trained by ``train egopose``)."""
+    from egorelight_cli.io.model import read_model
+
+    artifact = open_artifact(path, kind="model")
+    if artifact.single_file:
+        raise EgorelightError("an egopose model is a directory artifact", path)
+    payload = read_model(artifact.root, stage=EGOPOSE_MODEL_TYPE)
+    try:
+        net = EgoPoseNet(**payload.architecture)
+        result = net.load_state_dict(payload.state_dict, strict=False)
+    except (TypeError, RuntimeError) as exc:  # unknown constructor arguments, tensor shape mismatches
+        raise EgorelightError(f"egopose model does not fit this tool's network ({type(exc).__name__}: "
+                              f"{' '.join(str(exc).split())[:300]}); retrain it", path) from None
+    if result.missing_keys or result.unexpected_keys:
+        raise EgorelightError(f"egopose model does not fit this tool's network (missing {result.missing_keys[:3]}, "
+                              f"unexpected {result.unexpected_keys[:3]}); retrain it", path)
+    net.eval()
+    mean_pose = payload.extra.get("mean_pose_heading")
+    mean_pose = None if mean_pose is None else np.asarray(mean_pose, np.float32)
+    return EgoPoseModel(net, int(payload.extra["input_size"]), mean_pose, payload.extra), artifact
+
+
+def read_backbone_weights(path: Path) -> dict[str, torch.Tensor]:
+    """A torch state dict (or ``{"state_dict": ...}`` / an egorelight model.pt) of encoder weights."""
+    if not path.is_file():
+        raise EgorelightError("backbone weights not found", path)
+    try:
+        data = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:
+        first = (str(exc).strip().splitlines() or [""])[0]
+        raise EgorelightError(f"cannot load backbone weights ({type(exc).__name__}: {first})", path) from None
+    if isinstance(data, dict) and isinstance(data.get("state_dict"), dict):
+        data = data["state_dict"]
+    if not isinstance(data, dict) or not all(isinstance(v, torch.Tensor) for v in data.values()):
+        raise EgorelightError("backbone weights are not a state dict of tensors", path)
+    return data
+
+
+# ---------------------------------------------------------------------------------- commands
+@dataclass(frozen=True)
+class EgoPoseCommands:
+    """``egopose`` and ``train egopose`` over one :class:`StageRun` (the global options)."""
+
+    run: StageRun
+
+    def train(self, capture_path: Path, calibration_path: Path, out: Path, sequence: str | None = None,
+              backbone_weights: Path | None = None, resume: bool = False) -> Path:
+        capture, capture_artifact = open_capture(capture_path)
+        calibration, calibration_artifact = open_calibration(calibration_path)
+        cfg = self.run.config()
+        sequence = sequence or str(cfg.train.sequence)
+        info = capture.sequence(sequence)
+        info.require_stream("ego")
+        if not info.mocap_path().is_file():
+            raise EgorelightError(f"sequence {sequence!r} has no mocap.npz to supervise training", info.mocap_path())
+        mocap = read_keypoints_npz(info.mocap_path()).require_standard_layout(info.mocap_path())
+        backbone = read_backbone_weights(Path(backbone_weights)) if backbone_weights is not None else None
+        inputs = [a for a in (capture_artifact, calibration_artifact) if a is not None]
+        sources = [info.mocap_path()] + ([Path(backbone_weights)] if backbone_weights is not None else [])
+        checkpoint_dir = Path(str(out).rstrip("/") + ".checkpoint")
+        if not resume and checkpoint_dir.exists():
+            shutil.rmtree(checkpoint_dir)
+
+        def write(writer: ArtifactWriter, cfg: Config) -> None:
+            from egorelight_cli.io.model import ModelPayload, write_model
+
+            if writer.single_file:
+                raise EgorelightError("an egopose model is a directory artifact: give --out a directory name", out)
+            settings = EgoPoseSettings(cfg)
+            rig = rig_geometry(capture, calibration)
+            frames = load_frames(capture, calibration, sequence, int(cfg.input_size), only_content=True)
+            started = time.perf_counter()
+            result = train_egopose(frames, mocap, rig, settings, checkpoint_dir, backbone)
+            writer.timing["train_s"] = round(time.perf_counter() - started, 2)
+            extra = {"input_size": int(cfg.input_size), "training_sequence": sequence,
+                     "mean_pose_heading": result.mean_pose_heading.tolist(), "roles": ["down_left", "down_right"],
+                     "backbone_weights": str(backbone_weights) if backbone_weights else None, **result.info}
+            write_model(writer.workdir, ModelPayload(EGOPOSE_MODEL_TYPE, settings.architecture(),
+                                                     result.net.state_dict(), extra, result.curve),
+                        curve_title="egopose training losses")
+            writer.metrics.update(result.info)
+            writer.metrics["backbone"] = "pretrained (--backbone-weights)" if backbone is not None else "from scratch"
+            writer.metrics.update(_training_fit(result, frames, mocap, rig, settings))
+            writer.metrics.update(_held_out_metrics(capture, calibration, result, rig, settings))
+
+        produced = self.run.produce(out, "model", write, inputs=inputs, source_files=sources)
+        if checkpoint_dir.exists():
+            shutil.rmtree(checkpoint_dir)
+        return produced
+
+    def egopose(self, capture_path: Path, calibration_path: Path, model_path: Path, sequence: str, out: Path) -> Path:
+        capture, capture_artifact = open_capture(capture_path)
+        calibration, calibration_artifact = open_calibration(calibration_path)
+        model, model_artifact = load_egopose_model(model_path)
+        capture.sequence(sequence).require_stream("ego")
+        inputs = [a for a in (capture_artifact, calibration_artifact, model_artifact) if a is not None]
+
+        def write(writer: ArtifactWriter, cfg: Config) -> None:
+            rig = rig_geometry(capture, calibration)
+            frames = load_frames(capture, calibration, sequence, model.input_size)
+            started = time.perf_counter()
+            prediction = predict(model.net, frames, rig, float(cfg.confidence_sigma_m))
+            elapsed = time.perf_counter() - started
+            writer.timing["inference_ms_per_frame"] = round(1000 * elapsed / len(frames.frame_ids), 2)
+            save_keypoints(writer, prediction.keypoints, sequence=sequence, head_poses=frames.head_pose_source)
+            writer.metrics.update({"output_frames": len(frames.frame_ids), "invalid_head_pose_frames": int((~frames.valid).sum()),
+                                   "content_frames": int(frames.content.sum()), "head_poses": frames.head_pose_source,
+                                   "mean_confidence": round(float(prediction.keypoints.confidence[frames.valid].mean()), 4)
+                                   if frames.valid.any() else 0.0})
+            truth = groundtruth_keypoints(capture, sequence)
+            if truth is not None and frames.head_pose_source == "calibration":
+                writer.metrics.update(evaluate(prediction, frames, truth, model.mean_pose_heading))
+            elif truth is not None:
+                writer.metrics["groundtruth_not_scored"] = "head poses are in the tracker's own world frame"
+            if writer.single_file:
+                return
+            writer.save_npz(PER_FRAME_NPZ, {"xyz": prediction.per_frame, "pixels": prediction.pixels.astype(np.float32),
+                                            "frame_ids": frames.frame_ids},
+                            frame_ids=frames.frame_ids, units={"xyz": "m", "pixels": "px"},
+                            description="fused per-frame keypoints before the temporal module; soft-argmax pixels "
+                                        "per view (down_left, down_right)")
+            from egorelight_cli.io.images import write_image
+
+            write_image(writer.path(PREVIEW_PNG), preview_image(capture, frames, rig, prediction, truth,
+                                                                int(cfg.preview.frames), int(cfg.preview.tile)))
+
+        return self.run.produce(out, "keypoints", write, inputs=inputs)
+
+
+def _training_fit(result: TrainResult, frames, mocap, rig, settings: EgoPoseSettings) -> dict:
+    """MPJPE (cm) to the mocap on the frames trained on, and the mean-pose baseline there."""
+    frames = frames.select(np.nonzero(np.isin(frames.frame_ids, result.frame_ids))[0])
+    prediction = predict(result.net, frames, rig, float(settings.cfg.confidence_sigma_m))
+    metrics = evaluate(prediction, frames, mocap, result.mean_pose_heading, prefix="train_")
+    return {k: v for k, v in metrics.items() if "per_frame" not in k}
+
+
+def _held_out_metrics(capture: Capture, calibration: Calibration, result: TrainResult, rig,
+                      settings: EgoPoseSettings) -> dict:
+    """Scores on ``evaluate_sequence`` (unseen lighting) when the capture has its ground truth."""
+    sequence = str(settings.cfg.evaluate_sequence)
+    if not sequence or sequence not in capture.sequence_names() or sequence not in calibration.head_poses:
+        return {}
+    truth = groundtruth_keypoints(capture, sequence)
+    if truth is None:
+        return {}
+    frames = load_frames(capture, calibration, sequence, int(settings.cfg.input_size))
+    prediction = predict(result.net, frames, rig, float(settings.cfg.confidence_sigma_m))
+    return evaluate(prediction, frames, truth, result.mean_pose_heading, prefix=f"{sequence}_")
