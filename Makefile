@@ -50,83 +50,94 @@ $(PREVIEWS)/character.png: $(CHARACTER)
 	@mkdir -p $(PREVIEWS)
 	$(EGO) $(EGOFLAGS) character preview $(SUBJECT)/character --out $@
 
-# ---------------------------------------------------------------- ik (not in `subject` until egopose exists)
-IK_MODEL := $(SUBJECT)/models/ik/manifest.json
-# Training motions for `train ik` (motion artifacts); empty: the character's default model.
-IK_TRAIN_MOTIONS ?=
-# Ground truth for the ik metrics, e.g. $(SUBJECT)/capture/groundtruth/$(SEQ); empty: none.
-IK_GT ?=
+# Per-sequence artifacts are pattern rules: `make subjects/demo/meshes/wild/manifest.json` builds
+# the chain for any sequence. Ground-truth metrics are added when the capture carries groundtruth/.
+CALIBRATION := $(SUBJECT)/calibration/manifest.json
+GT = $(if $(wildcard $(SUBJECT)/capture/groundtruth/$(1)),--gt $(SUBJECT)/capture/groundtruth/$(1))
 
-$(IK_MODEL): $(CHARACTER) $(IK_TRAIN_MOTIONS)
-	$(EGO) $(EGOFLAGS) train ik $(IK_TRAIN_MOTIONS) --character $(SUBJECT)/character --out $(SUBJECT)/models/ik
-
-$(SUBJECT)/motion/$(SEQ)/manifest.json: $(SUBJECT)/keypoints/$(SEQ)/manifest.json $(CHARACTER) $(IK_MODEL)
-	$(EGO) $(EGOFLAGS) ik --in $(SUBJECT)/keypoints/$(SEQ) --character $(SUBJECT)/character \
-		--model $(SUBJECT)/models/ik $(if $(IK_GT),--gt $(IK_GT)) --out $(SUBJECT)/motion/$(SEQ)
+# ---------------------------------------------------------------- calibrate
+$(CALIBRATION): $(CAPTURE)
+	$(EGO) $(EGOFLAGS) calibrate --capture $(SUBJECT)/capture --out $(SUBJECT)/calibration
 
 # ---------------------------------------------------------------- egopose (Sec. egocentric pose estimator)
 EGOPOSE_MODEL := $(SUBJECT)/models/egopose/manifest.json
-EGOPOSE_INPUTS := --capture $(SUBJECT)/capture --calibration $(SUBJECT)/calibration
+EGO_INPUTS := --capture $(SUBJECT)/capture --calibration $(SUBJECT)/calibration
 
-$(EGOPOSE_MODEL): $(CAPTURE) $(SUBJECT)/calibration/manifest.json
-	$(EGO) $(EGOFLAGS) train egopose $(EGOPOSE_INPUTS) --out $(SUBJECT)/models/egopose
+$(EGOPOSE_MODEL): $(CAPTURE) $(CALIBRATION)
+	$(EGO) $(EGOFLAGS) train egopose $(EGO_INPUTS) --out $(SUBJECT)/models/egopose
 
 # the paper's ablation: the same estimator trained without colour jitter
-$(SUBJECT)/models/egopose_nojitter/manifest.json: $(CAPTURE) $(SUBJECT)/calibration/manifest.json
-	$(EGO) $(EGOFLAGS) train egopose --no-jitter $(EGOPOSE_INPUTS) --out $(SUBJECT)/models/egopose_nojitter
+$(SUBJECT)/models/egopose_nojitter/manifest.json: $(CAPTURE) $(CALIBRATION)
+	$(EGO) $(EGOFLAGS) train egopose --no-jitter $(EGO_INPUTS) --out $(SUBJECT)/models/egopose_nojitter
 
-$(SUBJECT)/keypoints/$(SEQ)/manifest.json: $(CAPTURE) $(SUBJECT)/calibration/manifest.json $(EGOPOSE_MODEL)
-	$(EGO) $(EGOFLAGS) egopose $(EGOPOSE_INPUTS) --model $(SUBJECT)/models/egopose --sequence $(SEQ) \
-		--out $(SUBJECT)/keypoints/$(SEQ)
+$(SUBJECT)/keypoints/%/manifest.json: $(CAPTURE) $(CALIBRATION) $(EGOPOSE_MODEL)
+	$(EGO) $(EGOFLAGS) egopose $(EGO_INPUTS) --model $(SUBJECT)/models/egopose --sequence $* \
+		--out $(SUBJECT)/keypoints/$*
 
 .PHONY: egopose-ablation
 egopose-ablation: $(EGOPOSE_MODEL) $(SUBJECT)/models/egopose_nojitter/manifest.json
 	@$(BIN)/python -c 'import json,sys; [print(p, {k: v for k, v in json.load(open(p))["metrics"].items() if k.startswith("test_") and "mpjpe" in k}) for p in sys.argv[1:]]' $^
 
-# ---------------------------------------------------------------- animate (Sec. depth-conditioned animatable avatar)
-# Trained on ANIMATE_TRAIN_SEQ's motion + point cloud (build them with `make SEQ=ego_train ...`);
-# the depth-agnostic student is fine-tuned with xi = 0 on the flat-lit frames of relight_train.
-ANIMATE_MODEL := $(SUBJECT)/models/animate/manifest.json
-ANIMATE_TRAIN_SEQ ?= ego_train
-ANIMATE_STUDENT_SEQ ?= relight_train
+# ---------------------------------------------------------------- ik
+IK_MODEL := $(SUBJECT)/models/ik/manifest.json
+# Training motions for `train ik` (motion artifacts); empty: the character's default model.
+IK_TRAIN_MOTIONS ?=
 
-$(ANIMATE_MODEL): $(CAPTURE) $(CHARACTER) $(SUBJECT)/motion/$(ANIMATE_TRAIN_SEQ)/manifest.json \
-		$(SUBJECT)/pointcloud/$(ANIMATE_TRAIN_SEQ)/manifest.json
-	$(EGO) $(EGOFLAGS) train animate --capture $(SUBJECT)/capture --seq $(ANIMATE_TRAIN_SEQ) \
-		--motion $(SUBJECT)/motion/$(ANIMATE_TRAIN_SEQ) --pointcloud $(SUBJECT)/pointcloud/$(ANIMATE_TRAIN_SEQ) \
-		--character $(SUBJECT)/character --out $(SUBJECT)/models/animate
+$(IK_MODEL): $(CHARACTER) $(IK_TRAIN_MOTIONS)
+	$(EGO) $(EGOFLAGS) train ik $(IK_TRAIN_MOTIONS) --character $(SUBJECT)/character --out $(SUBJECT)/models/ik
 
-$(SUBJECT)/models/animate_student/manifest.json: $(ANIMATE_MODEL) $(SUBJECT)/motion/$(ANIMATE_STUDENT_SEQ)/manifest.json
-	$(EGO) $(EGOFLAGS) train animate --no-depth --init $(SUBJECT)/models/animate --capture $(SUBJECT)/capture \
-		--seq $(ANIMATE_STUDENT_SEQ) --motion $(SUBJECT)/motion/$(ANIMATE_STUDENT_SEQ) \
-		--character $(SUBJECT)/character --out $(SUBJECT)/models/animate_student
+# motion/<seq>: from the headset alone (egopose keypoints)
+$(SUBJECT)/motion/%/manifest.json: $(SUBJECT)/keypoints/%/manifest.json $(CHARACTER) $(IK_MODEL)
+	$(EGO) $(EGOFLAGS) ik --in $(SUBJECT)/keypoints/$* --character $(SUBJECT)/character \
+		--model $(SUBJECT)/models/ik $(call GT,$*) --out $(SUBJECT)/motion/$*
 
-$(SUBJECT)/meshes/$(SEQ)/manifest.json: $(SUBJECT)/motion/$(SEQ)/manifest.json $(SUBJECT)/pointcloud/$(SEQ)/manifest.json \
-		$(ANIMATE_MODEL) $(CHARACTER) $(SUBJECT)/calibration/manifest.json
-	$(EGO) $(EGOFLAGS) animate --motion $(SUBJECT)/motion/$(SEQ) --pointcloud $(SUBJECT)/pointcloud/$(SEQ) \
-		--model $(SUBJECT)/models/animate --character $(SUBJECT)/character --capture $(SUBJECT)/capture \
-		--seq $(SEQ) --calibration $(SUBJECT)/calibration --out $(SUBJECT)/meshes/$(SEQ)
+# motion_mocap/<seq>: from the studio's markerless mocap (training supervision of the avatar)
+$(SUBJECT)/motion_mocap/%/manifest.json: $(CAPTURE) $(CHARACTER) $(IK_MODEL)
+	$(EGO) $(EGOFLAGS) ik --in $(SUBJECT)/capture/sequences/$*/mocap.npz --character $(SUBJECT)/character \
+		--model $(SUBJECT)/models/ik $(call GT,$*) --out $(SUBJECT)/motion_mocap/$*
 
 # ---------------------------------------------------------------- egodepth (Sec. egocentric depth estimator)
 # EGODEPTH_METHOD=sgbm gives the classical stereo baseline instead of the trained network.
 EGODEPTH_MODEL := $(SUBJECT)/models/egodepth/manifest.json
 EGODEPTH_METHOD ?= net
-EGODEPTH_INPUTS := --capture $(SUBJECT)/capture --calibration $(SUBJECT)/calibration
 
-$(EGODEPTH_MODEL): $(CAPTURE) $(SUBJECT)/calibration/manifest.json
-	$(EGO) $(EGOFLAGS) train egodepth $(EGODEPTH_INPUTS) --out $(SUBJECT)/models/egodepth
+$(EGODEPTH_MODEL): $(CAPTURE) $(CALIBRATION)
+	$(EGO) $(EGOFLAGS) train egodepth $(EGO_INPUTS) --out $(SUBJECT)/models/egodepth
 
-$(SUBJECT)/pointcloud/$(SEQ)/manifest.json: $(CAPTURE) $(SUBJECT)/calibration/manifest.json $(EGODEPTH_MODEL)
-	$(EGO) $(EGOFLAGS) egodepth $(EGODEPTH_INPUTS) --model $(SUBJECT)/models/egodepth --method $(EGODEPTH_METHOD) \
-		--seq $(SEQ) --out $(SUBJECT)/pointcloud/$(SEQ)
+$(SUBJECT)/pointcloud/%/manifest.json: $(CAPTURE) $(CALIBRATION) $(EGODEPTH_MODEL)
+	$(EGO) $(EGOFLAGS) egodepth $(EGO_INPUTS) --model $(SUBJECT)/models/egodepth --method $(EGODEPTH_METHOD) \
+		--seq $* --out $(SUBJECT)/pointcloud/$*
 
-# ---------------------------------------------------------------- calibrate
-CALIBRATION := $(SUBJECT)/calibration/manifest.json
+# ---------------------------------------------------------------- animate (Sec. depth-conditioned animatable avatar)
+# Trained on the mocap motion + ego point cloud of ANIMATE_TRAIN_SEQ; the depth-agnostic student is
+# fine-tuned with xi = 0 on the flat-lit frames of ANIMATE_STUDENT_SEQ (for the appearance stages).
+ANIMATE_MODEL := $(SUBJECT)/models/animate/manifest.json
+ANIMATE_STUDENT := $(SUBJECT)/models/animate_student/manifest.json
+ANIMATE_TRAIN_SEQ ?= ego_train
+ANIMATE_STUDENT_SEQ ?= relight_train
 
-$(SUBJECT)/calibration/manifest.json: $(CAPTURE)
-	$(EGO) $(EGOFLAGS) calibrate --capture $(SUBJECT)/capture --out $(SUBJECT)/calibration
+$(ANIMATE_MODEL): $(CAPTURE) $(CHARACTER) $(SUBJECT)/motion_mocap/$(ANIMATE_TRAIN_SEQ)/manifest.json \
+		$(SUBJECT)/pointcloud/$(ANIMATE_TRAIN_SEQ)/manifest.json
+	$(EGO) $(EGOFLAGS) train animate --capture $(SUBJECT)/capture --seq $(ANIMATE_TRAIN_SEQ) \
+		--motion $(SUBJECT)/motion_mocap/$(ANIMATE_TRAIN_SEQ) --pointcloud $(SUBJECT)/pointcloud/$(ANIMATE_TRAIN_SEQ) \
+		--character $(SUBJECT)/character --out $(SUBJECT)/models/animate
 
-subject: $(CAPTURE) $(CHARACTER) $(PREVIEWS)/character.png
+$(ANIMATE_STUDENT): $(ANIMATE_MODEL) $(SUBJECT)/motion_mocap/$(ANIMATE_STUDENT_SEQ)/manifest.json
+	$(EGO) $(EGOFLAGS) train animate --no-depth --init $(SUBJECT)/models/animate --capture $(SUBJECT)/capture \
+		--seq $(ANIMATE_STUDENT_SEQ) --motion $(SUBJECT)/motion_mocap/$(ANIMATE_STUDENT_SEQ) \
+		--character $(SUBJECT)/character --out $(SUBJECT)/models/animate_student
+
+$(SUBJECT)/meshes/%/manifest.json: $(SUBJECT)/motion/%/manifest.json $(SUBJECT)/pointcloud/%/manifest.json \
+		$(ANIMATE_MODEL) $(CHARACTER) $(CALIBRATION)
+	$(EGO) $(EGOFLAGS) animate --motion $(SUBJECT)/motion/$* --pointcloud $(SUBJECT)/pointcloud/$* \
+		--model $(SUBJECT)/models/animate --character $(SUBJECT)/character --capture $(SUBJECT)/capture \
+		--seq $* --calibration $(SUBJECT)/calibration --out $(SUBJECT)/meshes/$*
+
+# keep intermediate per-sequence artifacts (make would delete pattern-rule intermediates)
+.SECONDARY:
+
+subject: $(CAPTURE) $(CHARACTER) $(PREVIEWS)/character.png $(CALIBRATION) \
+	$(SUBJECT)/meshes/$(SEQ)/manifest.json $(ANIMATE_STUDENT)
 
 demo: subject
 	@echo
