@@ -91,20 +91,22 @@ class Calibration:
     stream_offsets: dict[str, int]
     head_poses: dict[str, HeadPoses] = field(default_factory=dict)
     extras: dict = field(default_factory=dict)
+    source: Path | None = field(default=None, compare=False)  # the file it was read from (for errors)
 
     def T_world_from_cam(self, role: str, sequence: str, frame_id: int) -> np.ndarray:
         """``H @ inv(Pi)`` for an ego camera at a master-clock frame."""
         if role not in self.ego_cameras:
-            raise EgorelightError(f"calibration has no ego camera {role!r} (has {', '.join(self.ego_cameras)})")
+            raise EgorelightError(f"calibration has no ego camera {role!r} (has {', '.join(self.ego_cameras)})",
+                                  self.source)
         if sequence not in self.head_poses:
-            raise EgorelightError(f"calibration has no head poses for sequence {sequence!r}")
+            raise EgorelightError(f"calibration has no head poses for sequence {sequence!r}", self.source)
         H = self.head_poses[sequence].pose(frame_id)
         return H @ np.linalg.inv(self.ego_cameras[role].T_cam_from_hmd)
 
     def ego_frame_id(self, sequence: str, frame_id: int) -> int:
         """The ego-stream frame id that shows master-clock frame ``frame_id``."""
         if sequence not in self.stream_offsets:
-            raise EgorelightError(f"calibration has no stream offset for sequence {sequence!r}")
+            raise EgorelightError(f"calibration has no stream offset for sequence {sequence!r}", self.source)
         return int(frame_id) + int(self.stream_offsets[sequence])
 
 
@@ -171,7 +173,8 @@ def read_calibration(root: str | Path) -> Calibration:
             raise EgorelightError("valid head poses hold NaN/inf", npz)
         head_poses[seq] = HeadPoses(**{k: arrays[k] for k in
                                        ("T_world_from_hmd", "frame_ids", "valid", "num_markers", "residual_px")})
-    return Calibration(ego_cameras=cameras, stream_offsets=offsets, head_poses=head_poses, extras=doc.get("extras", {}))
+    return Calibration(ego_cameras=cameras, stream_offsets=offsets, head_poses=head_poses, extras=doc.get("extras", {}),
+                       source=path)
 
 
 def _nan(value) -> float:

@@ -97,7 +97,7 @@ def usable_frames(calibration: Calibration, sequence: SequenceInfo, roles: Seque
     """Content frames (master clock) whose ego images exist, and for each whether the calibration
     has a valid head pose there. Frames without ego images are dropped."""
     if sequence.name not in calibration.head_poses:
-        raise EgorelightError(f"calibration has no head poses for sequence {sequence.name!r}")
+        raise EgorelightError(f"calibration has no head poses for sequence {sequence.name!r}", calibration.source)
     poses = calibration.head_poses[sequence.name]
     candidates = sequence.content_frame_ids  # wild (no studio stream): its ego ids, offset 0
     frames, posed = [], []
@@ -346,7 +346,7 @@ class SGBMDepth:
         left, right = (capture.ego_camera(r) for r in roles)
         for role in roles:
             if role not in calibration.ego_cameras:
-                raise EgorelightError(f"calibration has no ego camera {role!r}")
+                raise EgorelightError(f"calibration has no ego camera {role!r}", calibration.source)
         Pi_l, Pi_r = (calibration.ego_cameras[r].T_cam_from_hmd for r in roles)
         T_right_from_left = Pi_r @ invert_rigid(Pi_l)
         if T_right_from_left[0, 3] > 0:  # the reference must be the camera on the left of the baseline

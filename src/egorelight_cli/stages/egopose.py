@@ -143,7 +143,7 @@ def check_down_cameras(capture: Capture, calibration: Calibration) -> None:
                                   capture.root / "rig" / "hmd.json")
         sizes.add((camera.width, camera.height))
         if role not in calibration.ego_cameras:
-            raise EgorelightError(f"calibration has no hand-eye transform for {role}")
+            raise EgorelightError(f"calibration has no hand-eye transform for {role}", calibration.source)
     if len(sizes) != 1:
         raise EgorelightError(f"down-facing cameras differ in size: {sorted(sizes)}", capture.root / "rig" / "hmd.json")
 
@@ -177,7 +177,8 @@ def head_poses_for(capture: Capture, calibration: Calibration, info: SequenceInf
         return HeadPoses(np.where(finite[:, None, None], T, np.eye(4)), ids, finite, np.zeros(len(ids), np.int64),
                          np.zeros(len(ids))), "tracker"
     raise EgorelightError(f"calibration has no head poses for sequence {info.name!r} "
-                          f"(has {', '.join(sorted(calibration.head_poses)) or 'none'}); run calibrate on it")
+                          f"(has {', '.join(sorted(calibration.head_poses)) or 'none'}); run calibrate on it",
+                          calibration.source)
 
 
 def load_frames(capture: Capture, calibration: Calibration, sequence: str, size: int,
@@ -193,7 +194,7 @@ def load_frames(capture: Capture, calibration: Calibration, sequence: str, size:
         raise EgorelightError(f"sequence {sequence!r} has no {', '.join(missing)} ego stream", info.root / "sequence.json")
     if len(info.frame_ids):
         if sequence not in calibration.stream_offsets:
-            raise EgorelightError(f"calibration has no stream offset for sequence {sequence!r}")
+            raise EgorelightError(f"calibration has no stream offset for sequence {sequence!r}", calibration.source)
         ids = info.frame_ids
         offset = int(calibration.stream_offsets[sequence])
         content_ids = info.content_frame_ids
