@@ -47,8 +47,11 @@ def test_flagged_and_unknown_frames_are_errors(tmp_path):
         back.T_world_from_cam("down_left", "test", 11)
     with pytest.raises(EgorelightError, match="no head pose"):
         back.T_world_from_cam("down_left", "test", 99)
-    with pytest.raises(EgorelightError, match="no ego camera 'front_left'"):
+    with pytest.raises(EgorelightError, match="no ego camera 'front_left'") as info:
         back.T_world_from_cam("front_left", "test", 10)
+    assert str(tmp_path / "calibration.json") in str(info.value)  # the error names the file
+    with pytest.raises(EgorelightError, match="no head poses for sequence 'wild'"):
+        back.T_world_from_cam("down_left", "wild", 10)
 
 
 def test_malformed_files(tmp_path):
