@@ -248,7 +248,8 @@ def _egopose_commands(ctx: click.Context, no_jitter: bool = False):
 @click.option("--capture", "capture", required=True, type=click.Path(path_type=Path), help="Capture directory.")
 @click.option("--calibration", required=True, type=click.Path(path_type=Path), help="Calibration artifact.")
 @click.option("--model", "model_path", required=True, type=click.Path(path_type=Path), help="egopose model (train egopose).")
-@click.option("--sequence", default="test", show_default=True, help="Sequence to estimate (wild: tracker head poses).")
+@click.option("--sequence", "--seq", "sequence", default="test", show_default=True,
+              help="Sequence to estimate (wild: tracker head poses).")
 @click.option("--out", required=True, type=click.Path(path_type=Path), help="Keypoints artifact directory (or .npz file).")
 @common_options
 @click.pass_context
@@ -262,7 +263,7 @@ def egopose_command(ctx: click.Context, capture: Path, calibration: Path, model_
 @click.option("--capture", "capture", required=True, type=click.Path(path_type=Path), help="Capture directory.")
 @click.option("--calibration", required=True, type=click.Path(path_type=Path), help="Calibration artifact.")
 @click.option("--out", required=True, type=click.Path(path_type=Path), help="Model artifact directory.")
-@click.option("--sequence", default=None, help="Training sequence with mocap (default: ego_train).")
+@click.option("--sequence", "--seq", "sequence", default=None, help="Training sequence with mocap (default: ego_train).")
 @click.option("--no-jitter", is_flag=True, help="Train without colour jitter (the paper's ablation).")
 @click.option("--backbone-weights", type=click.Path(path_type=Path), default=None,
               help="Pretrained encoder weights (torch state dict); default: train from scratch.")
@@ -324,7 +325,7 @@ def _animate_commands(ctx: click.Context):
 
 @train_group.command("animate")
 @click.option("--capture", required=True, type=click.Path(path_type=Path), help="Capture (its recon/ is the target).")
-@click.option("--seq", default="ego_train", show_default=True, help="Training sequence.")
+@click.option("--seq", "--sequence", "seq", default="ego_train", show_default=True, help="Training sequence.")
 @click.option("--motion", "motion_path", required=True, type=click.Path(path_type=Path), help="Motion of that sequence.")
 @click.option("--pointcloud", "pointcloud_path", type=click.Path(path_type=Path), default=None,
               help="Pointcloud of that sequence (egodepth); not needed with --no-depth.")
@@ -349,7 +350,8 @@ def train_animate(ctx: click.Context, capture: Path, seq: str, motion_path: Path
 @click.option("--character", default="default", show_default=True, help="Character artifact, .npz, .character or 'default'.")
 @click.option("--capture", type=click.Path(path_type=Path), default=None,
               help="Capture: scores against its groundtruth/ when present; ego images for the preview.")
-@click.option("--seq", default="test", show_default=True, help="Sequence name (ground truth, ego images).")
+@click.option("--seq", "--sequence", "seq", default="test", show_default=True,
+              help="Sequence name (ground truth, ego images).")
 @click.option("--calibration", type=click.Path(path_type=Path), default=None,
               help="Calibration artifact: draws the meshes over the ego images in the preview.")
 @click.option("--no-depth", is_flag=True, help="Motion-only ablation (xi = 0).")
