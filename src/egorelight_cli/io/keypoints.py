@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from egorelight_cli.errors import EgorelightError
-from egorelight_cli.io.npz import read_kind_npz, read_npz, write_npz
+from egorelight_cli.io.npz import read_kind_npz, resolve_payload, write_npz
 from egorelight_cli.structures.keypoints import KEYPOINT_NAMES, NUM_KEYPOINTS
 
 KEYPOINTS_KIND = "egorelight/keypoints"
@@ -145,25 +145,6 @@ def read_keypoints_npz(path: str | Path) -> Keypoints:
     """Read a keypoints ``.npz`` (kind and version checked; NaN xyz allowed = missing)."""
     arrays, meta = read_kind_npz(path, KEYPOINTS_KIND, KEYPOINTS_VERSION)
     return keypoints_from_arrays(arrays, meta, path)
-
-
-def resolve_payload(path: str | Path, kind: str, payload: str, what: str):
-    """Where the ``payload`` npz of an artifact of ``kind`` (short name) lives.
-
-    ``path`` may be the artifact directory, a single ``.npz`` with its sidecar, or a lone
-    ``.npz`` without one (then the caller checks the npz's own ``__meta__`` kind).
-    Returns ``(npz path, Artifact | None)``.
-    """
-    from egorelight_cli.artifacts import manifest_path_for, open_artifact
-
-    path = Path(path)
-    if not path.exists():
-        raise EgorelightError(f"{what} input not found", path)
-    manifest_path, _ = manifest_path_for(path)
-    if path.is_file() and path.suffix == ".npz" and not manifest_path.is_file():
-        return path, None
-    artifact = open_artifact(path, kind=kind)
-    return (artifact.path if artifact.single_file else artifact.output(payload)), artifact
 
 
 def load_keypoints(path: str | Path):

@@ -25,8 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from egorelight_cli.errors import EgorelightError
-from egorelight_cli.io.keypoints import resolve_payload
-from egorelight_cli.io.npz import read_kind_npz, write_npz
+from egorelight_cli.io.npz import read_kind_npz, resolve_payload, write_npz
 
 MESHES_KIND = "egorelight/meshes"
 MESHES_VERSION = 1

@@ -21,9 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from egorelight_cli.errors import EgorelightError
-from egorelight_cli.io.keypoints import resolve_payload
-from egorelight_cli.io.npz import read_kind_npz
-from egorelight_cli.io.npz import write_npz
+from egorelight_cli.io.npz import read_kind_npz, resolve_payload, write_npz
 
 MOTION_KIND = "egorelight/motion"
 MOTION_VERSION = 1
