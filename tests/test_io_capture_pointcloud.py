@@ -18,6 +18,8 @@ def test_capture_reader_sees_every_sequence_and_camera(tiny_capture):
     test = capture.sequence("test")
     assert test.purpose == "test"
     assert set(test.content_frame_ids) <= set(test.frame_ids)
+    assert capture.groundtruth_file("test", "meshes.npz") is not None  # simulated: ground truth exists
+    assert capture.groundtruth_file("test", "nope.npz") is None
     wild = capture.sequence("wild")  # no studio stream: content frames are its ego frames
     assert len(wild.content_frame_ids) > 0 and set(wild.content_frame_ids) <= set(wild.ego_frame_ids)
     image = test.read_ego_image("down_left", int(test.ego_frame_ids[0]))

@@ -232,3 +232,8 @@ class Capture:
 
         Only evaluation code may read what lies there."""
         return self.root if (self.root / "groundtruth").is_dir() else None
+
+    def groundtruth_file(self, sequence: str, name: str) -> Path | None:
+        """``groundtruth/<sequence>/<name>`` when it exists (evaluation code only), else None."""
+        path = self.root / "groundtruth" / sequence / name
+        return path if path.is_file() else None

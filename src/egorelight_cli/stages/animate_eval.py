@@ -31,11 +31,8 @@ VISIBILITY_OFFSET_M = 2e-3
 
 def groundtruth_meshes(capture: Capture, sequence: str) -> MeshSequence | None:
     """The true mesh sequence of ``sequence`` or None when the capture has no ground truth."""
-    root = capture.groundtruth_root()
-    path = None if root is None else root / "groundtruth" / sequence / "meshes.npz"
-    if path is None or not path.is_file():
-        return None
-    return read_meshes_npz(path)
+    path = capture.groundtruth_file(sequence, "meshes.npz")
+    return None if path is None else read_meshes_npz(path)
 
 
 def down_cameras(capture: Capture, calibration, sequence: str, frame_id: int) -> list[Camera]:

@@ -435,9 +435,8 @@ class GroundTruth:
     def __init__(self, capture: Capture, sequence: SequenceInfo, occluder_margin_m: float):
         from egorelight_cli.io.npz import read_npz
 
-        root = capture.groundtruth_root()
-        path = root / "groundtruth" / sequence.name / "meshes.npz" if root is not None else None
-        self.available = path is not None and path.is_file()
+        path = capture.groundtruth_file(sequence.name, "meshes.npz")
+        self.available = path is not None
         self.sequence = sequence
         self.margin = occluder_margin_m
         if self.available:

@@ -552,10 +552,8 @@ def groundtruth_keypoints(capture: Capture, sequence: str) -> Keypoints | None:
     """``groundtruth/<seq>/keypoints.npz`` of a simulated capture (evaluation only), else None."""
     from egorelight_cli.io.keypoints import read_keypoints_npz
 
-    root = capture.groundtruth_root()
-    if root is None or not (root / "groundtruth" / sequence / "keypoints.npz").is_file():
-        return None
-    return read_keypoints_npz(root / "groundtruth" / sequence / "keypoints.npz")
+    path = capture.groundtruth_file(sequence, "keypoints.npz")
+    return None if path is None else read_keypoints_npz(path)
 
 
 def evaluate(prediction: Prediction, frames: EgoFrames, truth: Keypoints, mean_pose_heading: np.ndarray | None,
