@@ -177,6 +177,16 @@ def read_calibration(root: str | Path) -> Calibration:
                        source=path)
 
 
+def open_calibration(path: str | Path) -> tuple[Calibration, "Artifact"]:  # noqa: F821
+    """Open a calibration artifact directory: its kind and version checked, its payload read."""
+    from egorelight_cli.artifacts import open_artifact
+
+    artifact = open_artifact(path, kind="calibration")
+    if artifact.single_file:
+        raise EgorelightError("a calibration is a directory artifact", path)
+    return read_calibration(artifact.root), artifact
+
+
 def _nan(value) -> float:
     return float("nan") if value is None else float(value)
 

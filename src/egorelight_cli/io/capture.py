@@ -237,3 +237,13 @@ class Capture:
         """``groundtruth/<sequence>/<name>`` when it exists (evaluation code only), else None."""
         path = self.root / "groundtruth" / sequence / name
         return path if path.is_file() else None
+
+
+def open_capture(path: str | Path) -> tuple[Capture, "Artifact"]:  # noqa: F821
+    """Open a capture artifact (its manifest is checked and becomes the stage's cache-key input)."""
+    from egorelight_cli.artifacts import open_artifact
+
+    artifact = open_artifact(path, kind=CAPTURE_KIND)
+    if artifact.single_file:
+        raise EgorelightError("a capture is a directory artifact", path)
+    return Capture(artifact.root), artifact

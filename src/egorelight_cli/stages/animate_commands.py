@@ -28,7 +28,7 @@ from egorelight_cli import console
 from egorelight_cli.artifacts import Artifact, ArtifactWriter
 from egorelight_cli.config import Config
 from egorelight_cli.errors import EgorelightError
-from egorelight_cli.io.capture import Capture
+from egorelight_cli.io.capture import Capture, open_capture
 from egorelight_cli.io.mesh_sequence import MeshSequence, export_sequence, save_meshes
 from egorelight_cli.io.motion import Motion, load_motion
 from egorelight_cli.pipeline import StageRun
@@ -98,13 +98,6 @@ def load_animate_model(path: Path, character: Character, device) -> tuple[Animat
     return AnimationModel(character, net_settings, depth, net, device), artifact, extra
 
 
-def _open_capture(path: Path) -> tuple[Capture, Artifact]:
-    from egorelight_cli.artifacts import open_artifact
-
-    artifact = open_artifact(path, kind="capture")
-    return Capture(artifact.root), artifact
-
-
 def _flat_lit(seq, frame_ids: np.ndarray) -> np.ndarray:
     """The frames of ``frame_ids`` lit flat (all of them when the sequence lists no lights)."""
     lights = seq.lights
@@ -147,7 +140,7 @@ class AnimateCommands:
         from egorelight_cli.stages.ik_commands import character_sources
 
         character, character_artifact = load_character(character_spec)
-        capture, capture_artifact = _open_capture(capture_path)
+        capture, capture_artifact = open_capture(capture_path)
         seq = capture.sequence(sequence)
         seq.require_stream("recon")
         motion, motion_artifact = _load_motion(motion_path, character)
@@ -210,14 +203,12 @@ class AnimateCommands:
         motion, motion_artifact = _load_motion(motion_path, character)
         clouds, cloud_artifact, cloud_frames = _load_clouds(pointcloud_path, motion, no_depth)
         model, model_artifact, _ = load_animate_model(model_path, character, self._device())
-        capture, capture_artifact = _open_capture(capture_path) if capture_path is not None else (None, None)
+        capture, capture_artifact = open_capture(capture_path) if capture_path is not None else (None, None)
         calibration = calibration_artifact = None
         if calibration_path is not None:
-            from egorelight_cli.artifacts import open_artifact
-            from egorelight_cli.io.calibration import read_calibration
+            from egorelight_cli.io.calibration import open_calibration
 
-            calibration_artifact = open_artifact(calibration_path, kind="calibration")
-            calibration = read_calibration(calibration_artifact.root)
+            calibration, calibration_artifact = open_calibration(calibration_path)
         inputs = [a for a in (character_artifact, motion_artifact, cloud_artifact, model_artifact, capture_artifact,
                               calibration_artifact) if a is not None]
         sources = character_sources(character_spec, character_artifact)

@@ -31,13 +31,13 @@ import cv2
 import numpy as np
 
 from egorelight_cli import console
-from egorelight_cli.artifacts import ArtifactWriter, open_artifact
+from egorelight_cli.artifacts import ArtifactWriter
 from egorelight_cli.config import Config
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.geometry.cameras import invert_rigid
 from egorelight_cli.geometry.rigid import mean_rotation, rotation_angle_deg
 from egorelight_cli.io.calibration import Calibration, EgoCameraCalibration, HeadPoses, write_calibration
-from egorelight_cli.io.capture import Capture, SequenceInfo
+from egorelight_cli.io.capture import Capture, SequenceInfo, open_capture
 from egorelight_cli.pipeline import StageRun
 from egorelight_cli.stages.calibrate_handeye import HandEyeResult, calibrate_hand_eye
 from egorelight_cli.stages.calibrate_head import HeadTrack, project_points, studio_image, track_head
@@ -363,9 +363,6 @@ class CalibrateCommand:
     run: StageRun
 
     def __call__(self, capture_path: Path, out: Path) -> Path:
-        artifact = open_artifact(capture_path, kind="capture")
-        if artifact.single_file:
-            raise EgorelightError("a capture is a directory artifact", capture_path)
-        capture = Capture(artifact.root)
+        capture, artifact = open_capture(capture_path)
         return self.run.produce(out, "calibration", lambda w, cfg: write_calibration_artifact(w, cfg, capture),
                                 inputs=[artifact])

@@ -22,8 +22,8 @@ from egorelight_cli import console
 from egorelight_cli.artifacts import Artifact, ArtifactWriter, open_artifact
 from egorelight_cli.config import Config
 from egorelight_cli.errors import EgorelightError
-from egorelight_cli.io.calibration import Calibration, read_calibration
-from egorelight_cli.io.capture import Capture, frame_file
+from egorelight_cli.io.calibration import Calibration, open_calibration
+from egorelight_cli.io.capture import Capture, frame_file, open_capture
 from egorelight_cli.pipeline import StageRun
 from egorelight_cli.stages import egodepth as ed
 
@@ -32,12 +32,9 @@ POINTCLOUD_PREVIEW_PNG = "preview_pointcloud.png"
 
 
 def load_inputs(capture_path: Path, calibration_path: Path) -> tuple[Capture, Artifact, Calibration, Artifact]:
-    capture_artifact = open_artifact(capture_path, kind="capture")
-    calibration_artifact = open_artifact(calibration_path, kind="calibration")
-    if calibration_artifact.single_file:
-        raise EgorelightError("a calibration is a directory artifact", calibration_path)
-    return (Capture(capture_artifact.root), capture_artifact, read_calibration(calibration_artifact.root),
-            calibration_artifact)
+    capture, capture_artifact = open_capture(capture_path)
+    calibration, calibration_artifact = open_calibration(calibration_path)
+    return capture, capture_artifact, calibration, calibration_artifact
 
 
 def _prior(backbone: Path | None, device: torch.device):

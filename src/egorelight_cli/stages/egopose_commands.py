@@ -30,8 +30,8 @@ from egorelight_cli import console
 from egorelight_cli.artifacts import Artifact, ArtifactWriter, open_artifact
 from egorelight_cli.config import Config
 from egorelight_cli.errors import EgorelightError
-from egorelight_cli.io.calibration import Calibration, read_calibration
-from egorelight_cli.io.capture import Capture
+from egorelight_cli.io.calibration import Calibration, open_calibration
+from egorelight_cli.io.capture import Capture, open_capture
 from egorelight_cli.io.keypoints import read_keypoints_npz, save_keypoints
 from egorelight_cli.nn.egopose_net import EgoPoseNet
 from egorelight_cli.pipeline import StageRun
@@ -41,21 +41,6 @@ from egorelight_cli.stages.egopose import (EGOPOSE_MODEL_TYPE, EgoPoseSettings, 
 
 PREVIEW_PNG = "preview.png"
 PER_FRAME_NPZ = "per_frame.npz"
-
-
-# ---------------------------------------------------------------------------------- inputs
-def open_capture(path: Path) -> tuple[Capture, Artifact | None]:
-    """A capture directory; its manifest (when it has one) is the cache-key input."""
-    capture = Capture(path)
-    artifact = open_artifact(path, kind="capture") if (Path(path) / "manifest.json").is_file() else None
-    return capture, artifact
-
-
-def open_calibration(path: Path) -> tuple[Calibration, Artifact]:
-    artifact = open_artifact(path, kind="calibration")
-    if artifact.single_file:
-        raise EgorelightError("a calibration is a directory artifact", path)
-    return read_calibration(artifact.root), artifact
 
 
 def note_cpu_only(writer: ArtifactWriter, requested: str) -> None:
