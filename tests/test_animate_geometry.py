@@ -28,9 +28,9 @@ def test_skinned_template_is_the_character_model(character, posed):
     theta, template = posed
     ref = pose_character(character, torch.as_tensor(theta)).numpy()
     np.testing.assert_allclose(template.vertices, ref, atol=1e-9)
-    from egorelight_cli.geometry.depth_encoding import rotation_part
+    from egorelight_cli.geometry.rigid import project_to_rotation
 
-    R = rotation_part(template.vertex_T[..., :3, :3])
+    R = project_to_rotation(template.vertex_T[..., :3, :3])
     np.testing.assert_allclose(R @ np.swapaxes(R, -1, -2), np.broadcast_to(np.eye(3), R.shape), atol=1e-9)
     np.testing.assert_allclose(np.linalg.det(R), 1.0, atol=1e-9)
 
@@ -57,9 +57,9 @@ def test_xi_unwarps_the_residual_to_canonical_space(character, posed):
     length = np.linalg.norm(xi[mask], axis=1)
     assert abs(np.median(length) - offset) < 5e-4 and length.max() < 0.03
     # xi is W^-1 of the posed residual: rotating it back gives the residual direction
-    from egorelight_cli.geometry.depth_encoding import rotation_part
+    from egorelight_cli.geometry.rigid import project_to_rotation
 
-    back = np.einsum("vij,vj->vi", rotation_part(R[mask][:, :3, :3]), xi[mask])
+    back = np.einsum("vij,vj->vi", project_to_rotation(R[mask][:, :3, :3]), xi[mask])
     cos = np.sum(back * n[mask], axis=1) / np.linalg.norm(back, axis=1)
     assert np.median(cos) > 0.99
     # in canonical space the encoding points along the rest normals where the pose is rigid

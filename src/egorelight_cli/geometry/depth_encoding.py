@@ -29,6 +29,7 @@ from egorelight_cli.errors import EgorelightError
 from egorelight_cli.geometry.embedded_graph import graph_skinning_transforms
 from egorelight_cli.geometry.normals import vertex_normals
 from egorelight_cli.geometry.rotations import transform_points
+from egorelight_cli.geometry.rigid import project_to_rotation
 from egorelight_cli.geometry.skeleton import bone_transforms
 from egorelight_cli.geometry.skinning import inverse_skinning_directions
 from egorelight_cli.structures.character import Character
@@ -64,18 +65,6 @@ def skinned_template(character: Character, theta: np.ndarray, skinning: str = "d
     return SkinnedTemplate(vertices.numpy(), normals.numpy(), M.numpy())
 
 
-def rotation_part(A: np.ndarray) -> np.ndarray:
-    """(...,3,3) the rotation of the polar decomposition of (...,3,3) matrices (nearest rotation).
-
-    ``W^-1`` for ``xi`` uses it: norm-preserving even where graph blending makes the affine
-    skinning block nearly singular.
-    """
-    U, _, Vh = np.linalg.svd(np.asarray(A, np.float64))
-    d = np.sign(np.linalg.det(U @ Vh))
-    U[..., :, 2] *= d[..., None]
-    return U @ Vh
-
-
 def normals_agree(vertex_normals_: np.ndarray, point_normals: np.ndarray, eps_n: float) -> np.ndarray:
     """(...,) bool: normal disparity ``1 - n_v . n_z`` below ``eps_n`` (both unit (...,3))."""
     return 1.0 - np.sum(vertex_normals_ * point_normals, axis=-1) < eps_n
@@ -89,7 +78,7 @@ def encode_depth_frame(vertices: np.ndarray, normals: np.ndarray, vertex_T: np.n
         vertices: (V,3) skinned template, metres.
         normals: (V,3) its unit vertex normals.
         vertex_T: (V,4,4) (or (V,3,3)) per-vertex skinning transforms; ``W^-1`` applies the
-            transpose of their :func:`rotation_part`.
+            transpose of their nearest rotation (:func:`~egorelight_cli.geometry.rigid.project_to_rotation`).
         points: (P,3) valid cloud points, world metres (P may be 0).
         point_normals: (P,3) their unit normals.
         eps_d: distance threshold, metres.
@@ -110,7 +99,7 @@ def encode_depth_frame(vertices: np.ndarray, normals: np.ndarray, vertex_T: np.n
     xi = np.zeros((V, 3), np.float32)
     rows = np.flatnonzero(mask)
     if rows.size:
-        R = torch.as_tensor(rotation_part(np.asarray(vertex_T)[rows, :3, :3]))
+        R = torch.as_tensor(project_to_rotation(np.asarray(vertex_T)[rows, :3, :3]))
         residual = torch.as_tensor(points[nearest[rows]] - vertices[rows])
         xi[rows] = inverse_skinning_directions(residual, R, rigid=True).numpy()
     return xi, mask

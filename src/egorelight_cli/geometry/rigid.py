@@ -42,10 +42,11 @@ def rotation_angle_deg(R_a, R_b) -> np.ndarray:
 
 
 def project_to_rotation(M) -> np.ndarray:
-    """The closest rotation (3,3) to a 3x3 matrix (SVD, determinant +1)."""
+    """The closest rotations (...,3,3) to 3x3 matrices (...,3,3): the rotation of the polar
+    decomposition (SVD, determinant +1)."""
     U, _, Vt = np.linalg.svd(np.asarray(M, np.float64))
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
-    return U @ D @ Vt
+    U[..., :, 2] *= np.sign(np.linalg.det(U @ Vt))[..., None]
+    return U @ Vt
 
 
 def mean_rotation(Rs) -> np.ndarray:

@@ -32,7 +32,7 @@ from scipy.optimize import least_squares
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.geometry.cameras import Camera, invert_rigid
 from egorelight_cli.geometry.markers import charuco_board, detect_charuco
-from egorelight_cli.geometry.rigid import mean_rotation, rigid, rigid_from_vector
+from egorelight_cli.geometry.rigid import mean_rotation, rigid, rigid_from_vector, rotation_angle_deg
 from egorelight_cli.io.capture import Capture, SequenceInfo
 from egorelight_cli.stages.calibrate_head import MarkerObservation, project_camera_points, project_points
 
@@ -155,8 +155,10 @@ def _reprojection_rms(Pi, B, heads, obs: list[BoardObservation], cam: Camera) ->
 
 def _rotation_spread_deg(Hs: list[np.ndarray]) -> float:
     """Largest angle between any head rotation and the first (diversity of the motion)."""
-    return max(float(np.degrees(np.arccos(np.clip((np.trace(Hs[0][:3, :3].T @ H[:3, :3]) - 1) / 2, -1, 1))))
-               for H in Hs) if Hs else 0.0
+    if not Hs:
+        return 0.0
+    Rs = np.asarray(Hs)[:, :3, :3]
+    return float(rotation_angle_deg(Rs[0], Rs).max())
 
 
 def initialise(obs: list[BoardObservation], heads: dict[int, np.ndarray], cameras: dict[str, Camera],

@@ -69,6 +69,7 @@ from scipy.linalg.blas import dsbmv
 from egorelight_cli import console
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.geometry.ik_jacobian import KeypointJacobian, dof_influence, root_chain_joints
+from egorelight_cli.geometry.rigid import project_to_rotation
 from egorelight_cli.geometry.rotations import axis_angle_rotation
 from egorelight_cli.geometry.skeleton import forward_kinematics
 from egorelight_cli.io.keypoints import Keypoints
@@ -904,12 +905,7 @@ def _kabsch(P: np.ndarray, Q: np.ndarray, w: np.ndarray) -> np.ndarray:
     pc = (w[..., None] * P).sum(axis=1, keepdims=True) / wsum
     qc = (w[..., None] * Q).sum(axis=1, keepdims=True) / wsum
     H = np.einsum("tk,tki,tkj->tij", w, P - pc, Q - qc)
-    U, _, Vt = np.linalg.svd(H)
-    sign = np.sign(np.linalg.det(np.swapaxes(Vt, 1, 2) @ np.swapaxes(U, 1, 2)))
-    D = np.zeros_like(H)
-    D[:, 0, 0] = D[:, 1, 1] = 1.0
-    D[:, 2, 2] = sign
-    return np.swapaxes(Vt, 1, 2) @ D @ np.swapaxes(U, 1, 2)
+    return project_to_rotation(np.swapaxes(H, 1, 2))
 
 
 def _chain_rotation(theta_rot: np.ndarray, W: np.ndarray, axes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
