@@ -39,6 +39,7 @@ import torch
 from torch import nn
 
 from egorelight_cli.geometry.cameras import project, unproject_to_rays
+from egorelight_cli.geometry.rotations import rigid_inverse
 from egorelight_cli.nn.unet import UNet, group_norm
 
 WORLD_UP = (0.0, 1.0, 0.0)
@@ -70,16 +71,6 @@ class RigGeometry:
 def transform(T: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
     """Apply (...,4,4) transforms to (...,N,3) points (T broadcast over N)."""
     return points @ T[..., :3, :3].transpose(-1, -2) + T[..., None, :3, 3]
-
-
-def invert_rigid_t(T: torch.Tensor) -> torch.Tensor:
-    """Inverse of rigid (...,4,4) transforms."""
-    R = T[..., :3, :3].transpose(-1, -2)
-    out = torch.zeros_like(T)
-    out[..., :3, :3] = R
-    out[..., :3, 3] = -(R @ T[..., :3, 3:4]).squeeze(-1)
-    out[..., 3, 3] = 1
-    return out
 
 
 def heading_frame(T_world_from_hmd: torch.Tensor) -> torch.Tensor:
@@ -258,7 +249,7 @@ class EgoPoseNet(nn.Module):
             per joint with the pose prior, ``a * x + (1 - a) * prior`` in the heading frame.
         """
         T_world_from_heading = heading_frame(T_world_from_hmd)
-        local = transform(invert_rigid_t(T_world_from_heading)[:, None], fused_world)
+        local = transform(rigid_inverse(T_world_from_heading)[:, None], fused_world)
         blend = self.prior_blend[:, None]
         refined = blend * self.temporal(local) + (1 - blend) * self.prior_heading
         return transform(T_world_from_heading, refined)
@@ -300,6 +291,6 @@ def range_log_init(ranges: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     return mean.clamp_min(0.05).log()
 
 
-__all__ = ["EgoPoseNet", "RigGeometry", "TemporalRefiner", "ViewEncoder", "heading_frame", "invert_rigid_t",
+__all__ = ["EgoPoseNet", "RigGeometry", "TemporalRefiner", "ViewEncoder", "heading_frame",
            "load_backbone_weights", "project_keypoints", "range_log_init", "transform", "unproject_keypoints",
            "windows"]
