@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from egorelight_cli.cli import main
+from egorelight_cli.io.calibration import posed_ego_camera
 from egorelight_cli.io.capture import Capture
 from egorelight_cli.io.exr import read_exr
 from egorelight_cli.io.pointcloud import load_pointcloud
@@ -109,13 +110,13 @@ def test_pointcloud_artifact_and_metrics(net_cloud, tiny_capture, oracle_calibra
     unprojected = []
     for role in ROLES:
         depth = read_exr(net_cloud / "depth" / role / f"{frame:06d}.exr").channels["Z"]
-        camera = ed.posed_camera(capture, oracle_calibration, role, "test", frame)
+        camera = posed_ego_camera(capture, oracle_calibration, role, "test", frame)
         p, valid = unproject_depth(camera, depth)
         unprojected.append(p[valid])
     gap, _ = cKDTree(np.concatenate(unprojected)).query(points)
     assert gap.max() < 1e-4
     # normals face the cameras that saw the points
-    centre = np.mean([ed.posed_camera(capture, oracle_calibration, r, "test", frame).centre_world for r in ROLES], 0)
+    centre = np.mean([posed_ego_camera(capture, oracle_calibration, r, "test", frame).centre_world for r in ROLES], 0)
     _, normals = cloud.frame(frame)
     assert np.mean(np.sum(normals * (centre - points), axis=1) > 0) > 0.95
 

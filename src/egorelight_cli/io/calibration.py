@@ -177,6 +177,17 @@ def read_calibration(root: str | Path) -> Calibration:
                        source=path)
 
 
+def posed_ego_camera(capture, calibration: Calibration, role: str, sequence: str, frame_id: int):
+    """The HMD camera ``role`` of ``capture`` (an :class:`~egorelight_cli.io.capture.Capture`)
+    placed in the world by ``calibration`` at master-clock ``frame_id``: a
+    :class:`~egorelight_cli.geometry.cameras.Camera` with extrinsics ``inv(H @ inv(Pi))``."""
+    from egorelight_cli.geometry.cameras import Camera, invert_rigid
+
+    c = capture.ego_camera(role)
+    T_world_from_cam = calibration.T_world_from_cam(role, sequence, int(frame_id))
+    return Camera(c.model, c.K, c.dist, c.width, c.height, invert_rigid(T_world_from_cam), role)
+
+
 def open_calibration(path: str | Path) -> tuple[Calibration, "Artifact"]:  # noqa: F821
     """Open a calibration artifact directory: its kind and version checked, its payload read."""
     from egorelight_cli.artifacts import open_artifact

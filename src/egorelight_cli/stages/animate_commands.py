@@ -325,17 +325,16 @@ def _ego_overlay(capture: Capture, calibration, sequence: str, character: Charac
     """The down-left ego image with the mesh's visible vertices drawn over it (None if unavailable)."""
     import cv2
 
-    from egorelight_cli.geometry.cameras import Camera, invert_rigid, project_world
+    from egorelight_cli.geometry.cameras import project_world
+    from egorelight_cli.io.calibration import posed_ego_camera
 
     try:
         seq = capture.sequence(sequence)
         role = next(r for r in seq.ego_roles if r.startswith("down"))
-        cam = capture.ego_camera(role)
-        T = calibration.T_world_from_cam(role, sequence, int(frame_id))
+        camera = posed_ego_camera(capture, calibration, role, sequence, frame_id)
         image = seq.read_ego_image(role, calibration.ego_frame_id(sequence, int(frame_id)))
     except (EgorelightError, StopIteration):
         return None
-    camera = Camera(cam.model, cam.K, cam.dist, cam.width, cam.height, invert_rigid(T), role)
     from egorelight_cli.stages.animate_eval import ego_visible_vertices
 
     seen = ego_visible_vertices(vertices, character.faces, [camera])

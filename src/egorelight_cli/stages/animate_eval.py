@@ -19,10 +19,11 @@ from pathlib import Path
 import numpy as np
 
 from egorelight_cli.errors import EgorelightError
-from egorelight_cli.geometry.cameras import Camera, camera_rays_world, invert_rigid, project_world
+from egorelight_cli.geometry.cameras import Camera, camera_rays_world, project_world
 from egorelight_cli.geometry.normals import face_normals, vertex_normals
 from egorelight_cli.geometry.pointcloud_ops import SurfaceDistance
 from egorelight_cli.geometry.raycast import RayCaster
+from egorelight_cli.io.calibration import posed_ego_camera
 from egorelight_cli.io.capture import Capture
 from egorelight_cli.io.mesh_sequence import MeshSequence, read_meshes_npz
 
@@ -37,12 +38,8 @@ def groundtruth_meshes(capture: Capture, sequence: str) -> MeshSequence | None:
 
 def down_cameras(capture: Capture, calibration, sequence: str, frame_id: int) -> list[Camera]:
     """The down-facing ego cameras placed in the world at ``frame_id`` (via ``calibration``)."""
-    out = []
-    for role, cam in capture.ego_cameras.items():
-        if not role.startswith("down"):
-            continue
-        T_world_from_cam = calibration.T_world_from_cam(role, sequence, int(frame_id))
-        out.append(Camera(cam.model, cam.K, cam.dist, cam.width, cam.height, invert_rigid(T_world_from_cam), role))
+    out = [posed_ego_camera(capture, calibration, role, sequence, frame_id)
+           for role in capture.ego_cameras if role.startswith("down")]
     if not out:
         raise EgorelightError("the HMD has no down-facing camera", capture.root / "rig" / "hmd.json")
     return out

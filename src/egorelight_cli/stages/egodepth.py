@@ -41,7 +41,7 @@ from egorelight_cli.geometry.cameras import Camera, invert_rigid
 from egorelight_cli.geometry.depth import camera_ray_map, depth_edges, range_to_depth, render_depth, unproject_depth
 from egorelight_cli.geometry.pointcloud_ops import SurfaceDistance, fixed_size_cloud, fuse_views
 from egorelight_cli.geometry.raycast import RayCaster
-from egorelight_cli.io.calibration import Calibration
+from egorelight_cli.io.calibration import Calibration, posed_ego_camera
 from egorelight_cli.io.capture import Capture, SequenceInfo
 from egorelight_cli.nn.depth_net import DepthNet
 
@@ -67,16 +67,9 @@ class EgoView:
     image: np.ndarray
 
 
-def posed_camera(capture: Capture, calibration: Calibration, role: str, seq: str, frame_id: int) -> Camera:
-    """The ego camera ``role`` placed by the calibration at ``frame_id``."""
-    c = capture.ego_camera(role)
-    T_world_from_cam = calibration.T_world_from_cam(role, seq, int(frame_id))
-    return Camera(c.model, c.K, c.dist, c.width, c.height, invert_rigid(T_world_from_cam), role)
-
-
 def load_view(capture: Capture, calibration: Calibration, sequence: SequenceInfo, role: str, frame_id: int) -> EgoView:
     """Camera and image of ``role`` at master-clock ``frame_id`` (image ``frame + stream_offset``)."""
-    camera = posed_camera(capture, calibration, role, sequence.name, frame_id)
+    camera = posed_ego_camera(capture, calibration, role, sequence.name, frame_id)
     image = sequence.read_ego_image(role, calibration.ego_frame_id(sequence.name, frame_id))
     if image.shape[:2] != (camera.height, camera.width):
         raise EgorelightError(f"ego image of {role} is {image.shape[1]}x{image.shape[0]}, the camera is "
