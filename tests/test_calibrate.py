@@ -22,6 +22,9 @@ from egorelight_cli.stages.calibrate import calibrate
 from egorelight_cli.stages.calibrate_handeye import calibrate_hand_eye, detect_boards
 from egorelight_cli.stages.calibrate_head import MarkerObservation, solve_head_pose
 from egorelight_cli.stages.calibrate_sync import find_stream_offset
+from egorelight_cli.geometry.rigid import interpolate_poses
+from egorelight_cli.io.tracker import read_tracker
+from egorelight_cli.stages.calibrate_wild import align_trajectories, align_wild
 
 
 @pytest.fixture(scope="module")
@@ -102,13 +105,15 @@ def test_hand_eye_is_accurate_where_the_board_is_seen(calibrated, metrics):
 
 
 def test_wild_alignment_corrects_the_tracker(metrics, calibrated):
-    # Tiny wild: 8 frames of a ~130 deg/s turn. The tracker (50 ms late, drifting) is off by
-    # 2.1 deg on average after the best constant rotation; the odometry-based orientations by
-    # 0.9 deg (measured). The limit asks for a clear improvement over the raw tracker.
+    # Tiny wild: 8 frames of a ~130 deg/s turn, front cameras from the tiny hand-eye. The
+    # tracker (50 ms late, drifting) is off by 2.2 deg on average after the best rigid fit; the
+    # stereo odometry's poses by 0.56 deg and 0.75 cm RMS, latency found to the 2 ms grid step
+    # (measured). The limits ask for a clear improvement and centimetre positions.
     wild = metrics["wild"]
-    assert wild["rotation_error_deg_mean"] < 0.75 * wild["raw_tracker_rotation_error_deg_mean"]
-    assert wild["rotation_error_deg_mean"] < 1.5
-    assert abs(wild["latency_s"]) <= 0.2
+    assert wild["rotation_error_deg_mean"] < 0.5 * wild["raw_tracker_rotation_error_deg_mean"]
+    assert wild["rotation_error_deg_mean"] < 1.0
+    assert wild["position_error_cm_rms"] < 1.5
+    assert wild["latency_error_s"] < 0.01
     poses = read_calibration(calibrated).head_poses["wild"]
     R = poses.T_world_from_hmd[:, :3, :3]
     assert poses.valid.all() and np.allclose(R @ np.swapaxes(R, 1, 2), np.eye(3), atol=1e-9)
@@ -226,6 +231,79 @@ def test_inconsistent_ego_image_size_is_an_error(tiny_capture, tmp_path, cfg):
 
     with pytest.raises(EgorelightError, match="rig/hmd.json says"):
         detect_boards(seq, capture.ego_cameras, charuco_board(capture.board), -2, cfg.handeye)
+
+
+def _turning_head(times: np.ndarray) -> np.ndarray:
+    """A head turning at a varying rate and nodding, 20 cm from the turn's axis: (T,4,4)."""
+    yaw = 1.2 * times + 0.3 * np.sin(2 * np.pi * 0.9 * times)
+    pitch = 0.15 * np.sin(2 * np.pi * 0.6 * times)
+    vectors = np.stack([pitch, yaw, np.zeros_like(times), 0.2 * np.sin(yaw), 1.6 + 0.02 * np.sin(3 * times),
+                        0.2 * np.cos(yaw)], axis=1)
+    return rigid_from_vector(vectors)
+
+
+def test_trajectory_alignment_recovers_latency_and_offset(cfg):
+    fps, rate, latency = 5.0, 40.0, 0.062
+    frame_times = np.arange(30) / fps
+    tracker_times = np.arange(-4, 30 * 8 + 4) / rate
+    T_tracker_from_world = rigid_from_vector([0.0, 2.1, 0.0, 1.5, 0.2, -0.7])
+    tracker = T_tracker_from_world @ _turning_head(tracker_times - latency)  # reports the past
+    truth = _turning_head(frame_times)
+    T_vo_from_hmd = np.linalg.inv(truth[0]) @ truth
+    found, T_vo_from_tracker, fit = align_trajectories(T_vo_from_hmd, frame_times, tracker, tracker_times, cfg.wild)
+    assert abs(found - latency) <= cfg.wild.latency_step_s
+    expected = np.linalg.inv(truth[0]) @ np.linalg.inv(T_tracker_from_world)
+    assert rotation_angle_deg(T_vo_from_tracker[:3, :3], expected[:3, :3]) < 0.05
+    assert np.linalg.norm(T_vo_from_tracker[:3, 3] - expected[:3, 3]) < 0.003
+    assert fit["alignment_rms_deg"] < 0.1 and fit["alignment_rms_m"] < 0.003
+
+
+def test_interpolated_poses_extrapolate_translation_only():
+    times = np.array([0.0, 1.0])
+    T = rigid_from_vector([[0, 0, 0, 0, 0, 0], [0, 0.5, 0, 1.0, 0, 0]])
+    out = interpolate_poses(T, times, np.array([0.5, 2.0]), extrapolate=True)
+    np.testing.assert_allclose(out[0], rigid_from_vector([0, 0.25, 0, 0.5, 0, 0]), atol=1e-12)
+    np.testing.assert_allclose(out[1, :3, 3], [2.0, 0, 0])
+    np.testing.assert_allclose(out[1, :3, :3], T[1, :3, :3])
+
+
+def _wild_copy(tiny_capture: Path, tmp_path: Path, arrays: dict | None = None) -> SequenceInfo:
+    from egorelight_cli.io.npz import read_npz, write_npz
+
+    capture = Capture(tiny_capture)
+    src = capture.sequence("wild")
+    root = tmp_path / "wild"
+    shutil.copytree(src.root, root)
+    if arrays is not None:
+        old, meta = read_npz(root / "head_pose.npz")
+        write_npz(root / "head_pose.npz", {**old, **arrays}, meta)
+    return SequenceInfo("wild", root, src.doc)
+
+
+def test_bad_tracker_files_are_errors(tiny_capture, tmp_path):
+    from egorelight_cli.io.npz import read_npz
+
+    tracker, _ = read_npz(tiny_capture / "sequences" / "wild" / "head_pose.npz")
+    broken = tracker["T_world_from_hmd"].copy()
+    broken[3, 0, 3] = np.nan
+    cases = [({"T_world_from_hmd": broken}, "NaN"),
+             ({"timestamps_s": tracker["timestamps_s"][:-1]}, "timestamps have shape"),
+             ({"timestamps_s": np.zeros_like(tracker["timestamps_s"])}, "timestamps repeat")]
+    for k, (arrays, message) in enumerate(cases):
+        seq = _wild_copy(tiny_capture, tmp_path / str(k), arrays)
+        with pytest.raises(EgorelightError, match=message) as error:
+            read_tracker(seq)
+        assert error.value.path == str(seq.head_pose_path())
+
+
+def test_wild_alignment_needs_both_front_cameras(tiny_capture, tmp_path, cfg):
+    capture = Capture(tiny_capture)
+    seq = _wild_copy(tiny_capture, tmp_path)
+    with pytest.raises(EgorelightError, match="both calibrated front cameras; missing front_right"):
+        align_wild(seq, capture.ego_cameras, {"front_left": np.eye(4)}, cfg.wild)
+    (seq.root / "head_pose.npz").unlink()
+    with pytest.raises(EgorelightError, match="no headset tracker poses"):
+        align_wild(seq, capture.ego_cameras, {"front_left": np.eye(4), "front_right": np.eye(4)}, cfg.wild)
 
 
 def test_cli_error_is_one_line(tmp_path, capsys):

@@ -125,3 +125,38 @@ def test_envmap_view_through_a_fisheye():
     np.testing.assert_allclose(view[63:65, 94:96].mean((0, 1)), [1.5, 1.0, 1.0], atol=0.03)
     np.testing.assert_allclose(render_envmap_view(smooth, camera, supersample=1)[20:108, 20:108],
                                view[20:108, 20:108], atol=0.02)
+
+
+def _direction_map(height: int = 256) -> np.ndarray:
+    """A map whose radiance is its own direction (+1.5): lookups read back where they looked."""
+    return (1.5 + equirect_directions(height)).astype(np.float32)
+
+
+def test_envmap_on_a_sphere_shows_parallax():
+    envmap, centre, radius = _direction_map(), np.array([0.0, 1.6, 0.0]), 4.0
+    looking = (0.0, 0.0, -1.0)
+    # from the centre the sphere looks like the map at infinity
+    at_centre = _pinhole(look_at(centre, centre + looking))
+    np.testing.assert_allclose(render_envmap_view(envmap, at_centre, supersample=1, radius_m=radius, centre=centre),
+                               render_envmap_view(envmap, at_centre, supersample=1), atol=1e-6)
+    # 1 m to the side, the image centre sees the sphere's point (1, 0, -sqrt(15)) from the centre
+    eye = centre + (1.0, 0.0, 0.0)
+    view = render_envmap_view(envmap, _pinhole(look_at(eye, eye + looking)), supersample=1, radius_m=radius,
+                              centre=centre)
+    expected = np.array([1.0, 0.0, -np.sqrt(15.0)]) / radius
+    np.testing.assert_allclose(view[32, 32] - 1.5, expected, atol=0.01)
+    with pytest.raises(EgorelightError, match="outside the surroundings"):
+        far = centre + (5.0, 0.0, 0.0)
+        render_envmap_view(envmap, _pinhole(look_at(far, far + looking)), radius_m=radius, centre=centre)
+
+
+def test_envmap_floor_is_hit_before_the_sphere():
+    envmap, centre = _direction_map(), np.array([0.0, 1.6, 0.0])
+    eye = centre + (0.5, 0.0, 0.0)
+    camera = _pinhole(look_at(eye, eye + (0.0, -1.0, 0.0), up=(0.0, 0.0, -1.0)))
+    view = render_envmap_view(envmap, camera, supersample=1, radius_m=4.0, centre=centre, floor_y=0.0)
+    # straight down onto the floor at (0.5, 0, 0): seen from the centre along (0.5, -1.6, 0)
+    expected = np.array([0.5, -1.6, 0.0]) / np.hypot(0.5, 1.6)
+    np.testing.assert_allclose(view[32, 32] - 1.5, expected, atol=0.01)
+    with pytest.raises(EgorelightError, match="below the floor"):
+        render_envmap_view(envmap, camera, radius_m=4.0, centre=centre, floor_y=2.0)

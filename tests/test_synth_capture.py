@@ -28,7 +28,7 @@ from egorelight_cli.render.envmaps import make_envmap, write_envmap
 from egorelight_cli.synth.hmd import EGO_ROLES
 from egorelight_cli.synth.preview import tonemap
 from egorelight_cli.synth.sequences import SEQUENCES
-from egorelight_cli.synth.tracker import interpolate_poses
+from egorelight_cli.geometry.rigid import interpolate_poses
 
 
 def rotation_error_deg(a: np.ndarray, b: np.ndarray) -> float:
@@ -339,14 +339,23 @@ def test_wild_tracker_poses_have_latency_drift_and_their_own_frame(capture):
     tracker, _ = read_npz(capture / "sequences/wild/head_pose.npz")
     truth, _ = read_npz(capture / "groundtruth/wild/head_pose.npz")
     info = _json(capture / "groundtruth/wild/tracker.json")
-    assert tracker["T_world_from_hmd"].shape == truth["T_world_from_hmd"].shape
-    offset = np.asarray(info["T_tracker_from_world"])
-    aligned = invert_rigid(offset) @ tracker["T_world_from_hmd"]
     fps = _json(capture / "sequences/wild/sequence.json")["fps"]
+    # k samples per ego frame: every k-th one is taken with an ego frame, the others carry -1
+    k = len(tracker["frame_ids"]) // len(truth["frame_ids"])
+    assert k > 1 and len(tracker["frame_ids"]) == k * len(truth["frame_ids"])
+    np.testing.assert_array_equal(tracker["frame_ids"][::k], truth["frame_ids"])
+    assert (np.delete(tracker["frame_ids"], np.arange(0, len(tracker["frame_ids"]), k)) == -1).all()
+    np.testing.assert_allclose(np.diff(tracker["timestamps_s"]), 1.0 / (k * fps))
+    offset = np.asarray(info["T_tracker_from_world"])
+    aligned = invert_rigid(offset) @ tracker["T_world_from_hmd"][::k]
     times = np.arange(len(aligned)) / fps
     delayed = interpolate_poses(truth["T_world_from_hmd"], times, times - info["latency_s"])
     # without the unknown world offset and the latency, only the (small) drift remains
-    drift = np.linalg.norm(np.asarray(info["drift"]["translation_m"]), axis=1)
+    drift = np.linalg.norm(np.asarray(info["drift"]["translation_m"])[::k], axis=1)
     gap = np.linalg.norm(aligned[:, :3, 3] - delayed[:, :3, 3], axis=1)
     assert np.all(gap < drift + 0.03) and info["latency_s"] > 0
-    assert np.max(np.linalg.norm(tracker["T_world_from_hmd"][:, :3, 3] - truth["T_world_from_hmd"][:, :3, 3], axis=1)) > 0.05
+    assert np.max(np.linalg.norm(tracker["T_world_from_hmd"][::k, :3, 3] - truth["T_world_from_hmd"][:, :3, 3],
+                                 axis=1)) > 0.05
+    # the HMD cameras see a place around the wearer, above the ground
+    place = _json(capture / "groundtruth/wild/surroundings.json")
+    assert place["radius_m"] > 1.0 and place["floor_y"] == 0.0 and place["envmap"].startswith("wild_")

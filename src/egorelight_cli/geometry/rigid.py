@@ -6,7 +6,7 @@ Parameter vectors are ``(rx, ry, rz, tx, ty, tz)``: a rotation vector (radians) 
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation
+from scipy.spatial.transform import Rotation, Slerp
 
 
 def rigid_from_vector(v) -> np.ndarray:
@@ -63,3 +63,22 @@ def kabsch(source, target, weights=None) -> np.ndarray:
     H = ((P - mp) * w[:, None]).T @ (Q - mq)
     R = project_to_rotation(H.T)
     return rigid(R, mq - R @ mp)
+
+
+def interpolate_poses(T, times, query, extrapolate: bool = False) -> np.ndarray:
+    """Poses (M,4,4) at increasing ``times`` (M,) evaluated at ``query`` (N,) -> (N,4,4): slerp
+    rotations, linear translations. Outside ``times`` poses are held at the ends, or with
+    ``extrapolate`` their translations continue at the end velocities (rotations still held)."""
+    T, times, query = np.asarray(T, np.float64), np.asarray(times, np.float64), np.asarray(query, np.float64)
+    q = np.clip(query, times[0], times[-1])
+    out = np.tile(np.eye(4), (len(query), 1, 1))
+    out[:, :3, :3] = Slerp(times, Rotation.from_matrix(T[:, :3, :3]))(q).as_matrix() if len(T) > 1 else T[0, :3, :3]
+    for c in range(3):
+        out[:, c, 3] = np.interp(q, times, T[:, c, 3])
+    if extrapolate and len(T) > 1:
+        lo, hi = query < times[0], query > times[-1]
+        v0 = (T[1, :3, 3] - T[0, :3, 3]) / (times[1] - times[0])
+        v1 = (T[-1, :3, 3] - T[-2, :3, 3]) / (times[-1] - times[-2])
+        out[lo, :3, 3] += (query[lo] - times[0])[:, None] * v0
+        out[hi, :3, 3] += (query[hi] - times[-1])[:, None] * v1
+    return out

@@ -18,7 +18,8 @@ quantisation) for evaluation. :func:`random_ego_response` draws a plausible unkn
 :func:`exposure_for` picks a fixed exposure from a reference frame.
 
 :func:`render_envmap_view` renders what a camera (front-facing HMD camera, any model) sees of an
-environment map at infinity: only the camera's rotation matters.
+environment map, at infinity (only the camera's rotation matters) or painted on a sphere around
+the wearer.
 """
 
 from __future__ import annotations
@@ -175,13 +176,20 @@ def random_ego_response(rng: np.random.Generator, exposure: float = 1.0, exposur
     )
 
 
-def render_envmap_view(envmap: np.ndarray, camera: Camera, yaw_deg: float = 0.0, supersample: int = 2) -> np.ndarray:
-    """What ``camera`` sees of an environment map at infinity: (H,W,3) float32 linear radiance.
+def render_envmap_view(envmap: np.ndarray, camera: Camera, yaw_deg: float = 0.0, supersample: int = 2,
+                       radius_m: float | None = None, centre=None, floor_y: float | None = None) -> np.ndarray:
+    """What ``camera`` sees of an environment map: (H,W,3) float32 linear radiance.
 
-    Only the rotation of ``camera.T_cam_from_world`` matters. The map is the one of
-    ``rotate_envmap(envmap, yaw_deg)`` (sampled without resampling the map). Each pixel averages
-    ``supersample x supersample`` bilinear samples over its footprint; pixels without a ray
-    (outside a fisheye's image circle) are 0.
+    By default the map is at infinity and only the rotation of ``camera.T_cam_from_world``
+    matters. With ``radius_m`` the map is painted on a sphere of that radius around ``centre``
+    (world, metres; the camera must be inside): a ray ``o + t d`` sees the map in the direction
+    of its hit point from the centre, so moving the camera shows parallax (a room or a street
+    around the wearer). ``floor_y`` (world height, below the centre) adds a ground plane: rays
+    that meet it before the sphere see the map there (the map's lower half painted on the floor,
+    like a ground-projected environment), which gives the scene near points and depth variation.
+    The map is the one of ``rotate_envmap(envmap, yaw_deg)`` (sampled
+    without resampling the map). Each pixel averages ``supersample x supersample`` bilinear
+    samples over its footprint; pixels without a ray (outside a fisheye's image circle) are 0.
     """
     envmap = check_envmap(envmap)
     supersample = max(int(supersample), 1)
@@ -191,9 +199,24 @@ def render_envmap_view(envmap: np.ndarray, camera: Camera, yaw_deg: float = 0.0,
     pixels = grid[:, :, None, :] + sub[None, None]
     with single_torch_thread():
         dirs_cam, valid = unproject_to_rays(pixels, camera.K, camera.dist, camera.model, return_valid=True)
-    # World direction d = R_world_from_cam d_cam; the rotated map is looked up at R_y(yaw)^T d.
-    rotation = yaw_rotation(yaw_deg).T @ camera.T_cam_from_world[:3, :3].T
-    dirs = np.einsum("ij,...j->...i", rotation, dirs_cam)
-    samples = sample_equirect(envmap, dirs) * valid[..., None]
+    R_world_from_cam = camera.T_cam_from_world[:3, :3].T
+    dirs = np.einsum("ij,...j->...i", R_world_from_cam, dirs_cam)
+    if radius_m is not None:
+        origin = camera.centre_world - np.asarray(centre, dtype=np.float64)
+        c = float(origin @ origin) - float(radius_m) ** 2
+        if c >= 0:
+            raise EgorelightError(f"camera at {camera.centre_world.round(3).tolist()} is outside the surroundings' "
+                                  f"sphere (radius {radius_m} m)")
+        b = dirs @ origin
+        t = -b + np.sqrt(b * b - c)  # the far root: the hit in front of the camera
+        if floor_y is not None:
+            height = float(floor_y) - float(camera.centre_world[1])
+            if height >= 0:
+                raise EgorelightError(f"camera at {camera.centre_world.round(3).tolist()} is below the floor ({floor_y} m)")
+            down = dirs[..., 1] < 0
+            t = np.where(down, np.minimum(t, height / np.where(down, dirs[..., 1], -1.0)), t)
+        dirs = origin + t[..., None] * dirs
+    # The rotated map is looked up at R_y(yaw)^T d.
+    samples = sample_equirect(envmap, dirs @ yaw_rotation(yaw_deg)) * valid[..., None]
     count = np.maximum(valid.sum(axis=-1), 1)[..., None]
     return (samples.sum(axis=2) / count).astype(np.float32)

@@ -350,6 +350,47 @@ def envmap_set(purpose: str, count: int, seed: int = 0, height: int = 64,
             for spec in envmap_specs(purpose, count, seed, kinds)}
 
 
+def surface_detail(height: int, seed: int, strength: float = 0.5) -> np.ndarray:
+    """A multiplicative texture of the surroundings' fine structure: (height, 2*height) float32 > 0.
+
+    Real places are full of small things (posters, windows, bricks, leaves) that the procedural
+    maps, made for lighting, leave out. This is ``exp(strength * (patches + noise))``: a few
+    hundred rectangles of random brightness (sharp corners for feature detectors) over
+    multi-octave value noise, both zero-mean, then scaled so the solid-angle weighted mean is 1
+    (multiplying a map by it keeps the map's irradiance). Deterministic in ``(height, seed)``.
+    """
+    height = int(height)
+    if height < 4:
+        raise EgorelightError(f"detail texture height must be at least 4, got {height}")
+    rng = np.random.default_rng(np.random.SeedSequence(int(seed), spawn_key=(0xDE7,)))
+    H, W = height, 2 * height
+    log = np.zeros((H, W), np.float64)
+    for cells in (8, 16, 32, 64, 128):  # value noise: bicubic-upsampled random grids
+        grid = rng.normal(size=(cells, 2 * cells))
+        log += cv2.resize(grid, (W, H), interpolation=cv2.INTER_CUBIC) * (0.6 * 8 / cells) ** 0.5
+    patches = np.zeros((H, W), np.float64)
+    for _ in range(int(1.2 * height)):  # rectangles 0.5-6 degrees across, wrapping in azimuth
+        h = max(1, int(H * rng.uniform(0.5, 6.0) / 180.0))
+        w = max(1, int(W * rng.uniform(0.5, 6.0) / 360.0))
+        row, col = int(rng.integers(0, H - h + 1)), int(rng.integers(0, W))
+        cols = np.arange(col, col + w) % W
+        patches[row:row + h, cols] = rng.normal(0.0, 1.0)
+    factor = np.exp(float(strength) * (log - log.mean() + patches))
+    weights = equirect_solid_angles(H, W)
+    factor /= float((factor * weights).sum() / weights.sum())
+    return np.ascontiguousarray(factor, dtype=np.float32)
+
+
+def detailed_surroundings(envmap: np.ndarray, height: int, seed: int, strength: float = 0.5) -> np.ndarray:
+    """What cameras see of a place whose light ``envmap`` describes: the map resized to ``height``
+    rows (bilinear) times :func:`surface_detail` -> (height, 2*height, 3) float32."""
+    envmap = check_envmap(envmap)
+    height = int(height)
+    big = cv2.resize(envmap, (2 * height, height), interpolation=cv2.INTER_LINEAR)
+    return np.ascontiguousarray(np.maximum(big, 0.0) * surface_detail(height, seed, strength)[..., None],
+                                dtype=np.float32)
+
+
 def load_envmap(path: str | Path, height: int | None = None) -> np.ndarray:
     """Read a user HDR map (``.exr`` RGB, or Radiance ``.hdr``) as (H,2H,3) float32 linear RGB.
 

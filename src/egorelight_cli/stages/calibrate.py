@@ -12,8 +12,9 @@ Sec. "Data Acquisition" and the supplement's capture details:
 3. **Hand-eye** (:mod:`.calibrate_handeye`): ``T_cam_from_hmd`` of every ego camera from the
    ``handeye`` sequence's static ChArUco board (AX = XB, then a joint refinement that also
    improves that sequence's head poses).
-4. **In the wild** (:mod:`.calibrate_wild`): the headset tracker's poses resampled at the
-   latency found by aligning them to the front cameras' rotation odometry.
+4. **In the wild** (:mod:`.calibrate_wild`): the front cameras' stereo visual odometry, the
+   headset tracker's latency and the 6-DoF offset aligning its trajectory to the odometry; the
+   head poses are the odometry's, mapped into the tracker's gravity-aligned frame.
 
 When the capture carries ``groundtruth/`` the stage scores itself (:func:`evaluate`): hand-eye
 rotation/translation error per camera, head-pose error per sequence, whether each stream offset
@@ -42,7 +43,8 @@ from egorelight_cli.pipeline import StageRun
 from egorelight_cli.stages.calibrate_handeye import HandEyeResult, calibrate_hand_eye
 from egorelight_cli.stages.calibrate_head import HeadTrack, project_points, studio_image, track_head
 from egorelight_cli.stages.calibrate_sync import SyncResult, find_stream_offset
-from egorelight_cli.stages.calibrate_wild import WildResult, align_wild, tracker_poses
+from egorelight_cli.io.tracker import tracker_head_poses
+from egorelight_cli.stages.calibrate_wild import WildResult, align_wild
 
 STAGE = "calibrate"
 
@@ -115,7 +117,7 @@ def calibrate(capture: Capture, cfg: Config) -> CalibrationRun:
             wild = align_wild(sequences[wild_name], capture.ego_cameras, handeye.T_cam_from_hmd, cfg.wild)
             head_poses[wild_name] = wild.poses
         except EgorelightError as error:  # keep the tracker's poses as they are, and say so
-            head_poses[wild_name] = tracker_poses(sequences[wild_name])
+            head_poses[wild_name] = tracker_head_poses(sequences[wild_name])
             message = f"wild alignment failed ({error.message}); the tracker's poses are used without latency correction"
             warnings.append(message)
             console.info(f"calibrate: warning: {message}")
@@ -127,12 +129,12 @@ def calibrate(capture: Capture, cfg: Config) -> CalibrationRun:
         "sync": {name: {"stream_offset": s.stream_offset, "correlation": s.correlation, "runner_up": s.runner_up}
                  for name, s in syncs.items()},
         "head_pose_sources": {**{name: "studio ArUco markers" for name in tracks},
-                              **({wild_name: "headset tracker, latency-corrected" if wild else
+                              **({wild_name: f"headset tracker aligned to visual odometry ({cfg.wild.pose_source})"
+                                  if wild else
                                   "headset tracker, uncorrected (alignment failed)"} if wild_name in head_poses else {})},
     }
     if wild is not None:
-        extras["wild"] = {**wild.info, "R_vo_from_tracker": wild.R_vo_from_tracker.tolist(),
-                          "not_estimated": "translation offset and tracker drift (rotation-only odometry)"}
+        extras["wild"] = {**wild.info, "T_vo_from_tracker": wild.T_vo_from_tracker.tolist()}
     return CalibrationRun(Calibration(cameras, offsets, head_poses, extras), syncs, tracks, handeye, wild, warnings)
 
 
@@ -189,10 +191,14 @@ def evaluate(capture: Capture, run: CalibrationRun) -> dict:
     return metrics
 
 
-def _orientation_error_deg(est: np.ndarray, ref: np.ndarray) -> np.ndarray:
-    """Per-frame angle after the best constant rotation aligning ``est`` (T,3,3) to ``ref``."""
-    Q = mean_rotation(ref @ np.swapaxes(est, 1, 2))
-    return rotation_angle_deg(ref, Q @ est)
+def _trajectory_error(est: np.ndarray, ref: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-frame (rotation error deg, position error m) of poses ``est`` (T,4,4) against ``ref``
+    after the best constant rigid transform: the rotation average of ``R_ref R_est^T`` and the
+    centroid offset (the trajectories' world frames differ by an arbitrary gauge)."""
+    Q = mean_rotation(ref[:, :3, :3] @ np.swapaxes(est[:, :3, :3], 1, 2))
+    moved = est[:, :3, 3] @ Q.T
+    position = moved + np.mean(ref[:, :3, 3] - moved, axis=0)
+    return rotation_angle_deg(ref[:, :3, :3], Q @ est[:, :3, :3]), np.linalg.norm(position - ref[:, :3, 3], axis=1)
 
 
 def _wild_metrics(root: Path, wild: WildResult) -> dict:
@@ -200,16 +206,17 @@ def _wild_metrics(root: Path, wild: WildResult) -> dict:
 
     gt = read_head_poses(root, "wild")
     index = {int(f): i for i, f in enumerate(gt["frame_ids"])}
-    rows = [index[int(f)] for f in wild.poses.frame_ids]
-    ref = gt["T_world_from_hmd"][rows, :3, :3]
-    aligned = _orientation_error_deg(wild.poses.T_world_from_hmd[:, :3, :3], ref)
-    raw = _orientation_error_deg(wild.tracker_T[:, :3, :3], ref)
-    odo = _orientation_error_deg(wild.R_vo_from_hmd, ref)
+    ref = gt["T_world_from_hmd"][[index[int(f)] for f in wild.poses.frame_ids]]
+    out = {}
+    for name, est in (("", wild.poses.T_world_from_hmd), ("raw_tracker_", wild.tracker_T),
+                      ("odometry_", wild.T_vo_from_hmd)):
+        rotation, position = _trajectory_error(est, ref)
+        out.update({f"{name}rotation_error_deg_mean": float(rotation.mean()),
+                    f"{name}rotation_error_deg_max": float(rotation.max()),
+                    f"{name}position_error_cm_rms": float(100 * np.sqrt(np.mean(position ** 2))),
+                    f"{name}position_error_cm_max": float(100 * position.max())})
     tracker = read_json(root, "wild/tracker.json")
-    return {"rotation_error_deg_mean": float(aligned.mean()), "rotation_error_deg_max": float(aligned.max()),
-            "raw_tracker_rotation_error_deg_mean": float(raw.mean()),
-            "odometry_rotation_error_deg_mean": float(odo.mean()),
-            "latency_s": wild.latency_s, "latency_error_s": float(abs(wild.latency_s - float(tracker["latency_s"])))}
+    return {**out, "latency_s": wild.latency_s, "latency_error_s": float(abs(wild.latency_s - float(tracker["latency_s"])))}
 
 
 # ------------------------------------------------------------------------------------ previews
@@ -317,14 +324,20 @@ def trajectory_preview(run: CalibrationRun) -> np.ndarray:
         f = -R[:, :, 2]
         return np.degrees(np.unwrap(np.arctan2(f[:, 0], -f[:, 2])))
 
-    A = w.R_vo_from_tracker
+    A = w.T_vo_from_tracker
     x = w.poses.frame_ids.astype(float)
-    bottom = line_plot({"tracker (raw)": (x, yaw_of(A @ w.tracker_T[:, :3, :3])),
-                        "aligned (latency)": (x, yaw_of(A @ w.poses.T_world_from_hmd[:, :3, :3])),
-                        "odometry": (x, yaw_of(w.R_vo_from_hmd))},
+    middle = line_plot({"tracker (raw)": (x, yaw_of((A @ w.tracker_T)[:, :3, :3])),
+                        "aligned": (x, yaw_of((A @ w.poses.T_world_from_hmd)[:, :3, :3])),
+                        "odometry": (x, yaw_of(w.T_vo_from_hmd[:, :3, :3]))},
                        f"wild: heading in the odometry frame (deg), latency {1000 * w.latency_s:.0f} ms",
                        width=640, height=300, log_y=False, x_label="ego frame")
-    return np.concatenate([top, bottom], axis=0)
+    raw = (A @ w.tracker_T)[:, :3, 3] - w.T_vo_from_hmd[:, :3, 3]
+    bottom = line_plot({"tracker (raw) - odometry, x": (x, 100 * raw[:, 0]),
+                        "tracker (raw) - odometry, z": (x, 100 * raw[:, 2]),
+                        "odometry x": (x, 100 * w.T_vo_from_hmd[:, 0, 3]), "odometry z": (x, 100 * w.T_vo_from_hmd[:, 2, 3])},
+                       "wild: head position in the odometry frame (cm)", width=640, height=300, log_y=False,
+                       x_label="ego frame")
+    return np.concatenate([top, middle, bottom], axis=0)
 
 
 # ------------------------------------------------------------------------------------- command

@@ -168,15 +168,10 @@ def head_poses_for(capture: Capture, calibration: Calibration, info: SequenceInf
     if info.name in calibration.head_poses:
         return calibration.head_poses[info.name], "calibration"
     if info.streams.get("head_pose") and info.head_pose_path().is_file():
-        from egorelight_cli.io.npz import read_npz
+        from egorelight_cli.io.tracker import tracker_head_poses
 
-        arrays, _ = read_npz(info.head_pose_path())
-        T = np.asarray(arrays["T_world_from_hmd"], np.float64)
-        ids = np.asarray(arrays["frame_ids"], np.int64)
-        finite = np.isfinite(T).all(axis=(1, 2))
         console.info(f"egopose: calibration has no head poses for {info.name!r}; using the capture's tracker poses")
-        return HeadPoses(np.where(finite[:, None, None], T, np.eye(4)), ids, finite, np.zeros(len(ids), np.int64),
-                         np.zeros(len(ids))), "tracker"
+        return tracker_head_poses(info), "tracker"
     raise EgorelightError(f"calibration has no head poses for sequence {info.name!r} "
                           f"(has {', '.join(sorted(calibration.head_poses)) or 'none'}); run calibrate on it",
                           calibration.source)

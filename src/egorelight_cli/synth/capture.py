@@ -20,8 +20,10 @@ A capture (artifact kind ``egorelight/capture``) is laid out as::
       sequences/<seq>/recon/<frame>.ply         multi-view reconstruction (outer surface, own topology)
       sequences/<seq>/mocap.npz                 keypoints payload (xyz, confidence, frame_ids = studio ids, names)
       sequences/<seq>/ego/<role>/<frame>.png    8-bit sRGB HMD images, frame = ego frame id
-      sequences/<seq>/head_pose.npz             wild only: the headset tracker's T_world_from_hmd (T,4,4),
-                                                frame_ids (ego ids), timestamps_s (its own world frame)
+      sequences/<seq>/head_pose.npz             wild only: the headset tracker's T_world_from_hmd (T,4,4)
+                                                in its own world frame, sampled ``wild.tracker.samples_per_frame``
+                                                times per ego frame: timestamps_s, frame_ids (the ego id of
+                                                samples taken with an ego frame, -1 between them)
       previews/<seq>.png                        contact sheets
       groundtruth/...                           see :mod:`egorelight_cli.synth.groundtruth`
 
@@ -69,7 +71,7 @@ from egorelight_cli.io.keypoints import write_keypoints_npz
 from egorelight_cli.io.meshes import write_ply
 from egorelight_cli.io.npz import write_npz
 from egorelight_cli.render.camera_response import CameraResponse, random_ego_response
-from egorelight_cli.render.envmaps import envmap_set, write_envmap
+from egorelight_cli.render.envmaps import detailed_surroundings, envmap_set, write_envmap
 from egorelight_cli.render.lightstage import LightStage
 from egorelight_cli.structures.character import Character
 from egorelight_cli.synth import derived, groundtruth
@@ -134,6 +136,7 @@ class Rig:
     train_envmaps: list[str]
     test_envmaps: list[str]
     wild_envmaps: list[str]
+    wild_surroundings: dict[str, np.ndarray]
     responses: dict[str, CameraResponse]
     board_pose: np.ndarray
     timer: Timer = field(default_factory=Timer)
@@ -186,6 +189,9 @@ def build_rig(cfg: Config, character: Character, user_envmaps: dict[str, np.ndar
     wild = envmap_set("wild", 1, seed, int(e.height))
     test.update(user_envmaps)
     envmaps = {**train, **test, **wild}
+    surroundings = cfg.wild.surroundings
+    wild_views = {name: detailed_surroundings(env, int(surroundings.height), seed + i, float(surroundings.detail))
+                  for i, (name, env) in enumerate(wild.items())}
     rng = np.random.default_rng(np.random.SeedSequence([seed, 0xE60]))
     h = cfg.hmd
     responses = {role: random_ego_response(rng, exposure=float(h.ego_exposure if role in DOWN_ROLES else h.front_exposure),
@@ -196,7 +202,7 @@ def build_rig(cfg: Config, character: Character, user_envmaps: dict[str, np.ndar
     return Rig(character=character, cfg=cfg, appearance=appearance, clothing=clothing, hmd=hmd, cameras=cameras,
                held_out=held_out, lightstage=lightstage, envmaps=envmaps, train_envmaps=list(train),
                test_envmaps=list(user_envmaps) + [n for n in test if n not in user_envmaps],
-               wild_envmaps=list(wild), responses=responses,
+               wild_envmaps=list(wild), wild_surroundings=wild_views, responses=responses,
                board_pose=board_pose(cfg.board, head, forward, seed))
 
 
@@ -247,6 +253,13 @@ def _virtual_dome(cfg) -> LightStage:
     """Distant lights standing in for the in-the-wild environment (its S(E))."""
     return LightStage.dome(num_lights=int(cfg.wild.render_lights), radius=float(cfg.wild.dome_radius_m),
                            min_elevation_deg=-89.0, centre=(0.0, 1.0, 0.0))
+
+
+def wild_place(cfg, head: np.ndarray) -> dict:
+    """Where the in-the-wild surroundings are: ``{"radius_m", "centre", "floor_y"}``, a sphere
+    around the wearer's head at the first frame (``head``: (N,4,4) ``T_world_from_hmd``) above
+    the ground the wearer stands on (y = 0)."""
+    return {"radius_m": float(cfg.wild.surroundings.radius_m), "centre": head[0, :3, 3].tolist(), "floor_y": 0.0}
 
 
 def simulate_sequence(writer: ArtifactWriter, rig: Rig, plan: SequencePlan) -> dict:
@@ -319,12 +332,13 @@ def simulate_sequence(writer: ArtifactWriter, rig: Rig, plan: SequencePlan) -> d
             stats.aruco_frames_tracked += int(tracked)
         if plan.has_ego and ego_ids[i] >= 0:
             if plan.has_studio:
-                surroundings, yaw = backdrop.envmap(intensities), 0.0
-            else:
-                surroundings, yaw = rig.envmaps[plan.wild_envmap], plan.wild_yaw_deg
+                surroundings, yaw, place_at = backdrop.envmap(intensities), 0.0, {}
+            else:  # a detailed place around the scan's start, lit (low-frequency) like its map
+                surroundings, yaw = rig.wild_surroundings[plan.wild_envmap], plan.wild_yaw_deg
+                place_at = wild_place(cfg, head)
             for role in EGO_ROLES:
                 camera = hmd.cameras[role].camera(head[i])
-                image, result = frame.render_ego(camera, rig.responses[role], surroundings, yaw, rng)
+                image, result = frame.render_ego(camera, rig.responses[role], surroundings, yaw, rng, **place_at)
                 write_image(writer.path(f"{base}/ego/{role}/{frame_name(ego_ids[i], '.png')}"), image)
                 if role in DOWN_ROLES and content[i]:
                     circle = np.any(result.radiance > 0, axis=-1) | result.mask
@@ -360,14 +374,22 @@ def _write_sequence_files(writer, rig: Rig, plan: SequencePlan, keypoints, bodie
     if plan.has_studio:
         mocap = derived.mocap_keypoints(keypoints, ids, plan.fps, rng, cfg.derived.mocap)
         write_keypoints_npz(writer.path(f"{base}/mocap.npz"), mocap, source="synth markerless mocap")
-    if not plan.has_studio:  # in the wild: the headset's own tracker
-        tracked, truth = simulate_tracker(head, plan.fps, cfg.wild.tracker, rng)
+    if not plan.has_studio:  # in the wild: the headset's own tracker, k samples per ego frame
+        k = len(plan.tracker_theta) // plan.num_frames
+        head_fine = rig.hmd.world_from_hmd(joint_transforms(rig.character, plan.tracker_theta))
+        tracked, truth = simulate_tracker(head_fine, k * plan.fps, cfg.wild.tracker, rng)
+        sample_ids = np.full(len(tracked), -1, dtype=np.int64)
+        sample_ids[::k] = ego_ids
         write_npz(writer.path(f"{base}/head_pose.npz"), {
-            "T_world_from_hmd": tracked, "frame_ids": ego_ids, "timestamps_s": ego_ids / plan.fps},
+            "T_world_from_hmd": tracked, "frame_ids": sample_ids, "timestamps_s": np.arange(len(tracked)) / (k * plan.fps)},
             {"kind": "egorelight/head_pose", "version": 1, "units": {"T_world_from_hmd": "m", "timestamps_s": "s"},
-             "frame_ids": ego_ids.tolist(), "fps": plan.fps,
+             "frame_ids": "ego frame id of the samples taken with an ego frame, -1 between them",
+             "fps": plan.fps, "rate_hz": k * plan.fps,
              "source": "HMD built-in tracker (own world frame, latency, drift)"})
         groundtruth.write_json(writer.path(f"{groundtruth.GT}/{seq}/tracker.json"), truth)
+        groundtruth.write_json(writer.path(f"{groundtruth.GT}/{seq}/surroundings.json"), {
+            "envmap": plan.wild_envmap, "yaw_deg": plan.wild_yaw_deg, **wild_place(cfg, head),
+            "detail_height": int(cfg.wild.surroundings.height), "detail_strength": float(cfg.wild.surroundings.detail)})
     gt_ids = ids if plan.has_studio else ego_ids
     groundtruth.write_sequence_truth(writer.workdir, seq, rig.character, gt_ids, ego_ids, plan.fps, plan.theta,
                                      keypoints, bodies, beta_pose, beta_random, head)

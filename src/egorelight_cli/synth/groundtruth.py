@@ -19,7 +19,9 @@ Per sequence ``groundtruth/<seq>/``::
                      eg_translation = clothing (pose part + random part), frame_ids
     clothing.npz     node_translation_pose, node_translation_random (T,N,3) float32, frame_ids
     head_pose.npz    T_world_from_hmd (T,4,4) float64, frame_ids, ego_frame_ids  (HMD worn)
-    tracker.json     wild only: latency, drift, the tracker's world offset
+    tracker.json     wild only: latency, drift (per tracker sample), the tracker's world offset
+    surroundings.json  wild only: the map the HMD cameras see, its yaw, and the sphere it is on
+                     (radius_m, centre) around the wearer
 
 ``frame_ids`` are the sequence's studio frame ids (for ``wild``: ego frame ids); the arrays
 ``ego_frame_ids`` give the ego frame exposed at each (-1: none).

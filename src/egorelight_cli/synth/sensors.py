@@ -127,10 +127,14 @@ class PreparedFrame:
         return result
 
     def render_ego(self, camera: Camera, response: CameraResponse, surroundings: np.ndarray, yaw_deg: float,
-                   rng: np.random.Generator) -> tuple[np.ndarray, RenderResult]:
-        """(uint8 sRGB image, render) of an HMD camera seeing the scene over ``surroundings``."""
+                   rng: np.random.Generator, radius_m: float | None = None, centre=None,
+                   floor_y: float | None = None) -> tuple[np.ndarray, RenderResult]:
+        """(uint8 sRGB image, render) of an HMD camera seeing the scene over ``surroundings`` (at
+        infinity, or on a sphere of ``radius_m`` around ``centre`` above a floor at ``floor_y``: see
+        :func:`render_envmap_view`)."""
         start = time.perf_counter()
-        background = render_envmap_view(surroundings, camera, yaw_deg, supersample=1)
+        background = render_envmap_view(surroundings, camera, yaw_deg, supersample=1, radius_m=radius_m, centre=centre,
+                                        floor_y=floor_y)
         self.renderer.timer.add("backdrop", time.perf_counter() - start)
         result = self.render(camera, "ego", background=background)
         return response.apply(result.radiance, rng), result

@@ -57,6 +57,8 @@ class SequencePlan:
         wild_envmap: the environment (name) of the in-the-wild sequence.
         wild_yaw_deg: its rotation.
         sync: ``{"code", "standby_frames", "code_start_frame"}`` of the flash prefix ({} without one).
+        tracker_theta: wild only: (N*k,D) the motion sampled ``k = tracker_theta.shape[0] // N``
+            times per frame (sample ``j`` at ``j / (k fps)`` s), for the headset tracker's higher rate.
     """
 
     name: str
@@ -72,6 +74,7 @@ class SequencePlan:
     wild_envmap: str | None = None
     wild_yaw_deg: float = 0.0
     sync: dict = field(default_factory=dict)
+    tracker_theta: np.ndarray | None = None
 
     @property
     def num_frames(self) -> int:
@@ -184,7 +187,8 @@ def plan_sequence(name: str, cfg, character: Character | None, seed: int, train_
     else:
         segments = _motion_segments(name, scfg, cfg.motion_types, rng)
         facing = {"heading_range": 0.0, "origin_range": 0.0} if name == "handeye" else {}  # face the board
-        theta = compose_motion(character, segments, fps, n, seed=int(rng.integers(1 << 31)), **facing)
+        motion_seed = int(rng.integers(1 << 31))
+        theta = compose_motion(character, segments, fps, n, seed=motion_seed, **facing)
         if name == "test":
             casual = float(scfg.casual_s)
             n_casual = min(n, round(casual * fps))
@@ -194,7 +198,17 @@ def plan_sequence(name: str, cfg, character: Character | None, seed: int, train_
                 ramp = ramp * ramp * (3 - 2 * ramp)
                 theta = (1 - ramp) * theta + ramp * tail
                 segments = segments + [Segment("casual", casual)]
+    tracker_theta = None
+    if name == "wild":  # the headset tracker samples the same motion k times per frame
+        k = int(cfg.wild.tracker.samples_per_frame)
+        if k < 1:
+            raise EgorelightError(f"wild.tracker.samples_per_frame must be >= 1, got {k}")
+        if motion_theta is None:
+            tracker_theta = compose_motion(character, segments, k * fps, k * n, seed=motion_seed)
+        else:  # a motion file has frames only: interpolate between them
+            fine = np.arange(k * n) / k
+            tracker_theta = np.stack([np.interp(fine, np.arange(n), theta[:, c]) for c in range(theta.shape[1])], 1)
     return SequencePlan(name=name, fps=fps, frame_ids=frame_ids, lights=lights, theta=theta, has_studio=has_studio,
                         hmd_on=hmd_on, ego_offset=offset, segments=segments,
                         held_out=list(held_out) if name == "test" else [],
-                        wild_envmap=wild_envmap, wild_yaw_deg=wild_yaw, sync=sync)
+                        wild_envmap=wild_envmap, wild_yaw_deg=wild_yaw, sync=sync, tracker_theta=tracker_theta)

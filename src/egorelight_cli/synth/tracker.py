@@ -3,7 +3,8 @@ unknown world frame.
 
 ``T_tracker(t) = T_tracker_from_world @ D(t) @ T_world_from_hmd(t - latency)`` where ``D(t)`` is
 a slowly growing rigid drift (smooth random walk in translation and yaw) and the true pose at a
-fractional time is interpolated (linear translation, slerp rotation). The paper aligns this
+fractional time is interpolated (linear translation, slerp rotation) between the samples the
+caller gives (the motion evaluated at the tracker's rate). The paper aligns this
 trajectory to visual odometry with a 6-DoF offset; the ground truth keeps every part.
 """
 
@@ -11,20 +12,9 @@ from __future__ import annotations
 
 import numpy as np
 from scipy import ndimage
-from scipy.spatial.transform import Rotation, Slerp
+from scipy.spatial.transform import Rotation
 
-
-def interpolate_poses(T: np.ndarray, times: np.ndarray, query: np.ndarray) -> np.ndarray:
-    """Poses (T,4,4) at ``times`` interpolated at ``query`` (clamped to the ends)."""
-    query = np.clip(query, times[0], times[-1])
-    if len(T) == 1:
-        return np.repeat(T, len(query), axis=0)
-    slerp = Slerp(times, Rotation.from_matrix(T[:, :3, :3]))
-    out = np.tile(np.eye(4), (len(query), 1, 1))
-    out[:, :3, :3] = slerp(query).as_matrix()
-    for c in range(3):
-        out[:, c, 3] = np.interp(query, times, T[:, c, 3])
-    return out
+from egorelight_cli.geometry.rigid import interpolate_poses
 
 
 def simulate_tracker(T_world_from_hmd: np.ndarray, fps: float, cfg, rng: np.random.Generator) -> tuple[np.ndarray, dict]:
