@@ -332,11 +332,10 @@ def trajectory_preview(run: CalibrationRun) -> np.ndarray:
                        f"wild: heading in the odometry frame (deg), latency {1000 * w.latency_s:.0f} ms",
                        width=640, height=300, log_y=False, x_label="ego frame")
     raw = (A @ w.tracker_T)[:, :3, 3] - w.T_vo_from_hmd[:, :3, 3]
-    bottom = line_plot({"tracker (raw) - odometry, x": (x, 100 * raw[:, 0]),
-                        "tracker (raw) - odometry, z": (x, 100 * raw[:, 2]),
-                        "odometry x": (x, 100 * w.T_vo_from_hmd[:, 0, 3]), "odometry z": (x, 100 * w.T_vo_from_hmd[:, 2, 3])},
-                       "wild: head position in the odometry frame (cm)", width=640, height=300, log_y=False,
-                       x_label="ego frame")
+    bottom = line_plot({"tracker-VO x": (x, 100 * raw[:, 0]), "tracker-VO z": (x, 100 * raw[:, 2]),
+                        "VO x": (x, 100 * w.T_vo_from_hmd[:, 0, 3]), "VO z": (x, 100 * w.T_vo_from_hmd[:, 2, 3])},
+                       "wild: head position in the odometry (VO) frame (cm); raw tracker minus VO",
+                       width=640, height=300, log_y=False, x_label="ego frame")
     return np.concatenate([top, middle, bottom], axis=0)
 
 
