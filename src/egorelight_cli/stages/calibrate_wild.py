@@ -12,8 +12,9 @@ offset aligning the two trajectories. Here:
 2. **Relative poses** (:func:`relative_pose`): for every pair of frames whose tracker
    orientations differ by less than ``max_pair_angle_deg`` (neighbours, and the loop closure of a
    full turn), frame ``i``'s triangulated points are matched to frame ``j``'s features in both
-   cameras; PnP + RANSAC in the camera with more matches starts a joint two-camera reprojection
-   refinement (Huber) of ``T_hmdj_from_hmdi``.
+   cameras; PnP + RANSAC in the camera with more matches starts a two-frame bundle adjustment
+   of ``T_hmdj_from_hmdi`` and the points' depths over all four views (Huber; the depths
+   eliminated per point, so the outer problem has 6 unknowns).
 3. **Pose graph** (:func:`odometry`): the relative poses, chained from frame 0 and then refined
    together (Huber least squares on SE(3), ``sigma_rotation_deg`` / ``sigma_translation_m``
    weighting), give ``T_vo_from_hmd`` per frame with frame 0 = identity.
@@ -91,7 +92,8 @@ class StereoFrame:
 def detect_features(image: np.ndarray, cam: Camera, cfg) -> tuple[np.ndarray, np.ndarray]:
     """(normalised coordinates (K,2), SIFT descriptors (K,128) float32) of an RGB image."""
     grey = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
-    keypoints, descriptors = cv2.SIFT_create(nfeatures=int(cfg.max_features), contrastThreshold=float(cfg.contrast_threshold)).detectAndCompute(grey, None)
+    sift = cv2.SIFT_create(nfeatures=int(cfg.max_features), contrastThreshold=float(cfg.contrast_threshold))
+    keypoints, descriptors = sift.detectAndCompute(grey, None)
     if descriptors is None or not keypoints:
         return np.zeros((0, 2)), np.zeros((0, 128), np.float32)
     pixels = np.array([k.pt for k in keypoints], np.float64)
