@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from egorelight_cli.errors import EgorelightError
-from egorelight_cli.io.npz import read_kind_npz, resolve_payload, write_npz
+from egorelight_cli.io.npz import read_kind_npz, require_arrays, resolve_payload, write_npz
 from egorelight_cli.structures.keypoints import KEYPOINT_NAMES, NUM_KEYPOINTS
 
 KEYPOINTS_KIND = "egorelight/keypoints"
@@ -114,9 +114,7 @@ class Keypoints:
 def keypoints_from_arrays(arrays: dict[str, np.ndarray], meta: dict | None = None,
                           path: str | Path | None = None) -> Keypoints:
     """Build :class:`Keypoints` from payload arrays (errors name ``path``)."""
-    missing = [n for n in ("xyz", "confidence", "frame_ids") if n not in arrays]
-    if missing:
-        raise EgorelightError(f"keypoints payload lacks {', '.join(missing)}", path)
+    require_arrays(arrays, ("xyz", "confidence", "frame_ids"), "keypoints payload", path)
     names = tuple(str(s) for s in arrays["names"]) if "names" in arrays else KEYPOINT_NAMES
     fps = (meta or {}).get("fps")
     if fps is None and "fps" in arrays:

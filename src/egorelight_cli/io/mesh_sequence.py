@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from egorelight_cli.errors import EgorelightError
-from egorelight_cli.io.npz import read_kind_npz, resolve_payload, write_npz
+from egorelight_cli.io.npz import read_kind_npz, require_arrays, resolve_payload, write_npz
 
 MESHES_KIND = "egorelight/meshes"
 MESHES_VERSION = 1
@@ -120,9 +120,8 @@ def save_meshes(writer, meshes: MeshSequence, name: str | None = None, **meta) -
 def read_meshes_npz(path: str | Path) -> MeshSequence:
     """Read a ``meshes.npz`` (kind and version checked; missing ``offsets`` read as zeros)."""
     arrays, meta = read_kind_npz(path, MESHES_KIND, MESHES_VERSION)
-    missing = [n for n in ("vertices", "faces", "theta", "eg_rotation", "eg_translation", "frame_ids") if n not in arrays]
-    if missing:
-        raise EgorelightError(f"meshes payload lacks {', '.join(missing)}", path)
+    require_arrays(arrays, ("vertices", "faces", "theta", "eg_rotation", "eg_translation", "frame_ids"),
+                   "meshes payload", path)
     offsets = arrays.get("offsets")
     if offsets is None:
         offsets = np.zeros_like(arrays["vertices"], dtype=np.float32)

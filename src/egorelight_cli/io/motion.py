@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from egorelight_cli.errors import EgorelightError
-from egorelight_cli.io.npz import read_kind_npz, resolve_payload, write_npz
+from egorelight_cli.io.npz import read_kind_npz, require_arrays, resolve_payload, write_npz
 
 MOTION_KIND = "egorelight/motion"
 MOTION_VERSION = 1
@@ -94,9 +94,7 @@ class Motion:
 
 def motion_from_arrays(arrays: dict[str, np.ndarray], meta: dict | None = None,
                        path: str | Path | None = None) -> Motion:
-    missing = [n for n in ("theta", "dof_names", "frame_ids") if n not in arrays]
-    if missing:
-        raise EgorelightError(f"motion payload lacks {', '.join(missing)}", path)
+    require_arrays(arrays, ("theta", "dof_names", "frame_ids"), "motion payload", path)
     fps = float(arrays["fps"]) if "fps" in arrays else (meta or {}).get("fps")
     if fps is None:
         raise EgorelightError("motion payload has no fps", path)

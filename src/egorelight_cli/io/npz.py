@@ -19,6 +19,13 @@ from egorelight_cli.errors import EgorelightError
 META_KEY = "__meta__"
 
 
+def require_arrays(arrays: dict[str, np.ndarray], names, what: str, path: str | Path | None = None) -> None:
+    """Raise ``"<what> lacks a, b", path`` unless every array of ``names`` is in ``arrays``."""
+    missing = [n for n in names if n not in arrays]
+    if missing:
+        raise EgorelightError(f"{what} lacks {', '.join(missing)}", path)
+
+
 def write_npz(path: str | Path, arrays: dict[str, np.ndarray], meta: dict, compress: bool = True) -> None:
     """Write arrays plus a JSON ``__meta__`` entry to ``path``.
 

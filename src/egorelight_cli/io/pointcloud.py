@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from egorelight_cli.errors import EgorelightError
-from egorelight_cli.io.npz import read_kind_npz, resolve_payload, write_npz
+from egorelight_cli.io.npz import read_kind_npz, require_arrays, resolve_payload, write_npz
 
 POINTCLOUD_KIND = "egorelight/pointcloud"
 POINTCLOUD_VERSION = 1
@@ -96,9 +96,7 @@ def save_pointcloud(writer, cloud: PointCloudSequence, name: str | None = None, 
 def read_pointcloud_npz(path: str | Path) -> PointCloudSequence:
     """Read a ``pointcloud.npz`` (kind, version, shapes and finiteness checked)."""
     arrays, meta = read_kind_npz(path, POINTCLOUD_KIND, POINTCLOUD_VERSION, check_finite=True)
-    missing = [n for n in ("points", "normals", "valid", "frame_ids") if n not in arrays]
-    if missing:
-        raise EgorelightError(f"pointcloud payload lacks {', '.join(missing)}", path)
+    require_arrays(arrays, ("points", "normals", "valid", "frame_ids"), "pointcloud payload", path)
     try:
         return PointCloudSequence(arrays["points"], arrays["normals"], arrays["valid"], arrays["frame_ids"],
                                   meta.get("fps"))

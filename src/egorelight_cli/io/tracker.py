@@ -13,7 +13,7 @@ import numpy as np
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.io.calibration import HeadPoses
 from egorelight_cli.io.capture import SequenceInfo
-from egorelight_cli.io.npz import read_npz
+from egorelight_cli.io.npz import read_npz, require_arrays
 
 
 def read_tracker(seq: SequenceInfo) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -24,9 +24,7 @@ def read_tracker(seq: SequenceInfo) -> tuple[np.ndarray, np.ndarray, np.ndarray]
     if not path.exists():
         raise EgorelightError(f"sequence {seq.name!r} has no headset tracker poses (head_pose.npz)", path)
     arrays, _ = read_npz(path)
-    for key in ("T_world_from_hmd", "frame_ids"):
-        if key not in arrays:
-            raise EgorelightError(f"tracker poses lack {key!r}", path)
+    require_arrays(arrays, ("T_world_from_hmd", "frame_ids"), "tracker payload", path)
     T, ids = np.asarray(arrays["T_world_from_hmd"], np.float64), np.asarray(arrays["frame_ids"], np.int64)
     if T.shape != (len(ids), 4, 4):
         raise EgorelightError(f"tracker poses have shape {T.shape} for {len(ids)} frame ids", path)
