@@ -289,12 +289,11 @@ def relative_pose(a: StereoFrame, b: StereoFrame, cameras: dict[str, Camera], T_
 
 
 # --------------------------------------------------------------------------------- pose graph
-def _edge_residuals(T_hmd_from_vo: np.ndarray, edges: list[tuple[int, int, np.ndarray]], scale: np.ndarray) -> np.ndarray:
-    """(E*6,) scaled 6-vectors of ``inv(T_ij) @ T_j @ inv(T_i)`` for edges ``(i, j, T_hmdj_from_hmdi)``."""
-    i = np.array([e[0] for e in edges])
-    j = np.array([e[1] for e in edges])
-    measured = np.stack([e[2] for e in edges])
-    error = np.linalg.inv(measured) @ T_hmd_from_vo[j] @ np.linalg.inv(T_hmd_from_vo[i])
+def _edge_residuals(T_hmd_from_vo: np.ndarray, i: np.ndarray, j: np.ndarray, inverse_measured: np.ndarray,
+                    scale: np.ndarray) -> np.ndarray:
+    """(E*6,) scaled 6-vectors of ``inv(T_ij) @ T_j @ inv(T_i)`` for edges ``i -> j`` measuring
+    ``T_ij = T_hmdj_from_hmdi`` (``inverse_measured``: their inverses, (E,4,4))."""
+    error = inverse_measured @ T_hmd_from_vo[j] @ np.linalg.inv(T_hmd_from_vo[i])
     return (vector_from_rigid(error) / scale).ravel()
 
 
@@ -338,9 +337,11 @@ def odometry(seq: SequenceInfo, cameras: dict[str, Camera], T_cam_from_hmd: dict
     def nodes(x):
         return np.concatenate([np.eye(4)[None], rigid_from_vector(x.reshape(-1, 6))])
 
+    graph = (np.array([e[0] for e in edges]), np.array([e[1] for e in edges]),
+             np.linalg.inv(np.stack([e[2] for e in edges])))
     x0 = vector_from_rigid(np.stack(start[1:])).ravel()
-    fit = least_squares(lambda x: _edge_residuals(nodes(x), edges, scale), x0, loss="huber", f_scale=1.0)
-    residual = _edge_residuals(nodes(fit.x), edges, np.ones(6)).reshape(-1, 6)
+    fit = least_squares(lambda x: _edge_residuals(nodes(x), *graph, scale), x0, loss="huber", f_scale=1.0)
+    residual = _edge_residuals(nodes(fit.x), *graph, np.ones(6)).reshape(-1, 6)
     T_vo_from_hmd = np.linalg.inv(nodes(fit.x))
     return T_vo_from_hmd, {
         "odometry_pairs": len(edges), "odometry_inliers_mean": float(np.mean(inliers)),
