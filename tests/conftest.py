@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
@@ -59,3 +60,27 @@ def oracle_calibration_artifact(tiny_capture, tmp_path_factory) -> Path:
     from egorelight_cli.synth.groundtruth import write_oracle_calibration
 
     return write_oracle_calibration(tiny_capture, tmp_path_factory.mktemp("oracle") / "calibration")
+
+
+@dataclass
+class Result:
+    """What a CLI run ended with: exit code and stderr."""
+
+    returncode: int
+    stderr: str
+
+
+@pytest.fixture
+def run(capsys):
+    """The CLI in-process (``main`` as the console script runs it): ``run(*args) -> Result``."""
+    from egorelight_cli.cli import main
+
+    def invoke(*args) -> Result:
+        capsys.readouterr()
+        try:
+            main([str(a) for a in args])
+            code = 0
+        except SystemExit as exc:
+            code = int(exc.code or 0)
+        return Result(code, capsys.readouterr().err)
+    return invoke

@@ -8,8 +8,9 @@ An artifact is either
 The manifest (DESIGN.md Sec. 3) records kind, version, stage, resolved config, input digests,
 output digests, metrics, timing and units; it is validated against ``schemas/<kind>.schema.json``.
 An artifact counts as *finished* only when its manifest exists: writes go to a temporary
-sibling (``<out>.tmp-<random>``) and are renamed into place at the end, so a killed run never
-leaves a finished-looking half artifact.
+sibling (``.<out>.tmp-<pid>-<random>``) and are renamed into place at the end, so a killed run
+never leaves a finished-looking half artifact; the next writer of the same output removes such
+leftovers of processes that are gone (:func:`remove_stale_temporaries`).
 
 A stage's **cache key** is the hash of (stage, stage version, resolved config, input digests);
 re-running a stage whose output already carries the same key is skipped unless forced.
@@ -18,6 +19,7 @@ re-running a stage whose output already carries the same key is skipped unless f
 from __future__ import annotations
 
 import datetime as _dt
+import glob
 import hashlib
 import json
 import os
@@ -237,6 +239,53 @@ def open_artifact(path: str | Path, kind: str | None = None, verify: bool | None
 
 
 # ----------------------------------------------------------------------------------- writing
+TEMPORARY_TAGS = ("tmp", "old")  # work directory of a writer; previous artifact being replaced
+
+
+def temporary_sibling(path: str | Path, tag: str = "tmp", suffix: str = "") -> Path:
+    """A hidden sibling ``.<name>.<tag>-<pid>-<random><suffix>`` of ``path`` for atomic writes;
+    the pid lets :func:`remove_stale_temporaries` tell a killed run's leftovers from a live one's."""
+    path = Path(path)
+    return path.with_name(f".{path.name}.{tag}-{os.getpid()}-{uuid.uuid4().hex[:8]}{suffix}")
+
+
+def _process_alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OverflowError):
+        return True
+    return True
+
+
+def remove_stale_temporaries(path: str | Path) -> list[Path]:
+    """Remove the temporary siblings of ``path`` (:func:`temporary_sibling`) left by runs that were
+    killed: those whose process is gone, and those of the older ``<tag>-<random>`` naming without a
+    pid. Returns what was removed."""
+    path = Path(path)
+    removed = []
+    for tag in TEMPORARY_TAGS:
+        for match in glob.glob(str(path.with_name(f".{glob.escape(path.name)}.{tag}-*"))):
+            leftover = Path(match)
+            parts = leftover.name[len(path.name) + len(tag) + 3:].split("-")
+            if len(parts) >= 2 and parts[0].isdigit() and _process_alive(int(parts[0])):
+                continue
+            if leftover.is_dir() and not leftover.is_symlink():
+                shutil.rmtree(leftover, ignore_errors=True)
+            else:
+                leftover.unlink(missing_ok=True)
+            removed.append(leftover)
+    return removed
+
+
+def output_error(exc: OSError, out: str | Path) -> EgorelightError:
+    """A one-line error for an output that cannot be written (read-only, name too long, ...)."""
+    return EgorelightError(f"cannot write the output ({exc.strerror or exc})", exc.filename or out)
+
+
 def _fsync_tree(root: Path) -> None:
     for dirpath, _dirs, files in os.walk(root):
         for name in files:
@@ -316,11 +365,14 @@ class ArtifactWriter:
         self.runtime: dict[str, Any] = {}
         self.extra: dict[str, Any] = {}
         self._started = _dt.datetime.now(_dt.timezone.utc)
-        parent = self.out.parent
-        parent.mkdir(parents=True, exist_ok=True)
-        self.workdir = parent / f".{self.out.name}.tmp-{uuid.uuid4().hex[:8]}"
-        self.workdir.mkdir()
         self._committed = False
+        try:
+            self.out.parent.mkdir(parents=True, exist_ok=True)
+            remove_stale_temporaries(self.out)
+            self.workdir = temporary_sibling(self.out)
+            self.workdir.mkdir()
+        except OSError as exc:
+            raise output_error(exc, self.out) from None
 
     @property
     def manifest_dir(self) -> Path:
@@ -398,10 +450,13 @@ class ArtifactWriter:
             raise EgorelightError(f"single-file output needs exactly the payload {self.out.name}", self.out)
         manifest = self.manifest()
         validate_manifest(manifest, self.out)
-        if self.single_file:
-            self._commit_single(manifest)
-        else:
-            self._commit_directory(manifest)
+        try:
+            if self.single_file:
+                self._commit_single(manifest)
+            else:
+                self._commit_directory(manifest)
+        except OSError as exc:
+            raise output_error(exc, self.out) from None
         self._committed = True
         return self.out
 
@@ -412,7 +467,7 @@ class ArtifactWriter:
         if self.out.exists():
             if not self.out.is_dir():
                 raise EgorelightError("output exists and is not a directory", self.out)
-            old = self.out.with_name(f".{self.out.name}.old-{uuid.uuid4().hex[:8]}")
+            old = temporary_sibling(self.out, "old")
             os.replace(self.out, old)
         os.replace(self.workdir, self.out)
         _fsync_dir(self.out.parent)

@@ -1,4 +1,5 @@
-"""Running one stage: resolve its config, skip it when up to date, write its artifact atomically.
+"""Running one stage: resolve its config, refuse an unsafe ``--out`` (:mod:`egorelight_cli.outputs`),
+skip it when up to date, write its artifact atomically.
 
 This is the glue every CLI command uses, so that the commands themselves stay thin::
 
@@ -17,6 +18,8 @@ from egorelight_cli import console
 from egorelight_cli.artifacts import Artifact, ArtifactWriter, cache_key, is_up_to_date, sha256_file
 from egorelight_cli.config import Config, resolve_config
 from egorelight_cli.errors import EgorelightError
+from egorelight_cli.outputs import check_output
+from egorelight_cli.runtime import resolve_device
 
 
 @dataclass(frozen=True)
@@ -32,6 +35,11 @@ class StageRun:
 
     def config(self) -> Config:
         return resolve_config(self.stage, self.preset, self.sets, self.seed)
+
+    def compute_device(self) -> "torch.device":  # noqa: F821
+        """The device this stage runs on for ``--device`` (:func:`~egorelight_cli.runtime.resolve_device`:
+        ``cuda`` without a GPU, or for a CPU-only stage, is an error)."""
+        return resolve_device(self.device, stage=self.stage)
 
     def produce(
         self,
@@ -53,6 +61,8 @@ class StageRun:
         """
         out = Path(out)
         config = self.config()
+        device = self.compute_device()
+        check_output(out, kind, [p for a in inputs for p in (a.path, a.manifest_path)] + list(source_files))
         sources = []
         for path in source_files:
             path = Path(path)
@@ -68,7 +78,8 @@ class StageRun:
         with ArtifactWriter(out, kind=kind, stage=self.stage, config=config, inputs=inputs, key=key) as writer:
             if sources:
                 writer.extra["sources"] = sources
-            writer.runtime["device"] = self.device
+            writer.runtime["device"] = device.type
+            writer.runtime["device_requested"] = self.device
             writer.runtime["preset"] = config.preset
             write(writer, config)
             writer.timing["wall_s"] = round(time.perf_counter() - started, 3)

@@ -11,14 +11,26 @@ import numpy as np
 from egorelight_cli.errors import EgorelightError
 
 DEVICES = ("auto", "cpu", "cuda")
+# stages with a CUDA code path; every other stage runs on the CPU and refuses --device cuda
+CUDA_STAGES = frozenset({"egodepth", "animate"})
 
 
-def resolve_device(name: str = "auto") -> "torch.device":  # noqa: F821
-    """``auto`` -> CUDA when available, else CPU; ``cuda`` without a GPU is an error."""
+def resolve_device(name: str = "auto", stage: str | None = None) -> "torch.device":  # noqa: F821
+    """The device a run actually uses, or a one-line error; the manifest records this one.
+
+    ``auto`` -> CUDA when available, else CPU; ``cuda`` without a GPU is an error. With ``stage``
+    given, a stage outside :data:`CUDA_STAGES` runs on the CPU: ``auto`` resolves to ``cpu`` and
+    ``cuda`` is an error (it would otherwise run on the CPU while the user believes otherwise).
+    """
     import torch
 
     if name not in DEVICES:
         raise EgorelightError(f"unknown device {name!r}; choose one of {', '.join(DEVICES)}")
+    if stage is not None and stage not in CUDA_STAGES:
+        if name == "cuda":
+            raise EgorelightError(f"--device cuda: the {stage} stage has no CUDA code path and runs on the CPU; "
+                                  "use --device cpu (or auto)")
+        return torch.device("cpu")
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     if name == "cuda" and not torch.cuda.is_available():

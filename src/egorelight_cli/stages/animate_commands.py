@@ -129,9 +129,7 @@ class AnimateCommands:
     run: StageRun
 
     def _device(self):
-        from egorelight_cli.runtime import resolve_device
-
-        return resolve_device(self.run.device)
+        return self.run.compute_device()
 
     # ------------------------------------------------------------------------------ train
     def train(self, capture_path: Path, sequence: str, motion_path: Path, pointcloud_path: Path | None,

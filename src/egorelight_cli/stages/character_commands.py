@@ -10,17 +10,18 @@ from __future__ import annotations
 
 import os
 import shutil
-import uuid
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from egorelight_cli.artifacts import Artifact, ArtifactWriter, manifest_path_for, open_artifact
+from egorelight_cli.artifacts import (Artifact, ArtifactWriter, manifest_path_for, open_artifact,
+                                      remove_stale_temporaries, temporary_sibling)
 from egorelight_cli.config import Config
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.io.character import default_character_path, read_character_npz, write_character_npz
 from egorelight_cli.io.meshes import write_obj
+from egorelight_cli.outputs import check_output_location
 from egorelight_cli.pipeline import StageRun
 from egorelight_cli.structures.character import Character
 
@@ -96,12 +97,19 @@ def write_character(writer: ArtifactWriter, character: Character, **meta) -> Non
 
 def _replace_atomically(tmp: Path, target: Path) -> None:
     if target.is_dir():
-        old = target.with_name(f".{target.name}.old-{uuid.uuid4().hex[:8]}")
+        old = temporary_sibling(target, "old")
         os.replace(target, old)
         os.replace(tmp, target)
         shutil.rmtree(old, ignore_errors=True)
     else:
         os.replace(tmp, target)
+
+
+def _character_paths(spec: str | Path, artifact: Artifact | None) -> list[Path]:
+    """Every file a character was read from (an output must not replace any of them)."""
+    from egorelight_cli.stages.ik_commands import character_sources
+
+    return [artifact.path, artifact.manifest_path] if artifact is not None else character_sources(str(spec), None)
 
 
 @dataclass(frozen=True)
@@ -136,9 +144,15 @@ class CharacterCommands:
     def export_ddc(self, character_path: Path, out_dir: Path, name: str) -> Path:
         from egorelight_cli.io.ddc import write_ddc_character
 
-        character, _ = load_character(character_path)
+        character, artifact = load_character(character_path)
+        check_output_location(out_dir, _character_paths(character_path, artifact))
+        if out_dir.exists() and not out_dir.is_dir():
+            raise EgorelightError("--out names a folder but a file exists there; not replacing it", out_dir)
+        if out_dir.is_dir() and any(out_dir.iterdir()) and not any(out_dir.glob("*.character")):
+            raise EgorelightError("--out exists and is not a DDC export (no .character file); not replacing it", out_dir)
         out_dir.parent.mkdir(parents=True, exist_ok=True)
-        tmp = out_dir.with_name(f".{out_dir.name}.tmp-{uuid.uuid4().hex[:8]}")
+        remove_stale_temporaries(out_dir)
+        tmp = temporary_sibling(out_dir)
         tmp.mkdir()
         try:
             write_ddc_character(character, tmp, name=name)
@@ -151,11 +165,13 @@ class CharacterCommands:
         from egorelight_cli.io.images import write_image
         from egorelight_cli.render.preview import character_preview_image
 
-        character, _ = load_character(character_path)
+        character, artifact = load_character(character_path)
+        check_output_location(out, _character_paths(character_path, artifact))
         cfg = self.run.config()
         image = character_preview_image(character, width=cfg.preview_width, height=cfg.preview_height)
         out.parent.mkdir(parents=True, exist_ok=True)
-        tmp = out.with_name(f".{out.stem}.tmp-{uuid.uuid4().hex[:8]}{out.suffix}")
+        remove_stale_temporaries(out)
+        tmp = temporary_sibling(out, suffix=out.suffix)
         try:
             write_image(tmp, image)
             os.replace(tmp, out)

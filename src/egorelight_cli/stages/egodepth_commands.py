@@ -75,8 +75,6 @@ class EgodepthCommands:
 
     # ------------------------------------------------------------------------------- train
     def train(self, capture_path: Path, calibration_path: Path, out: Path, backbone: Path | None = None) -> Path:
-        from egorelight_cli.runtime import resolve_device
-
         capture, capture_artifact, calibration, calibration_artifact = load_inputs(capture_path, calibration_path)
         cfg = self.run.config()
         roles = tuple(cfg.roles)
@@ -84,7 +82,7 @@ class EgodepthCommands:
         if not names:
             raise EgorelightError("capture has no ego_train sequence (set train.sequences)", capture.root)
         sequences = [capture.sequence(n) for n in names]
-        device = resolve_device(self.run.device)
+        device = self.run.compute_device()
         prior = _prior(backbone, device)  # checks the folder before anything runs
         sources = [backbone / "config.json"] if backbone is not None else []
         checkpoint = Path(out).parent / f".{Path(out).name}.checkpoint.pt"
@@ -129,8 +127,6 @@ class EgodepthCommands:
     # ------------------------------------------------------------------------------ predict
     def predict(self, capture_path: Path, calibration_path: Path, model_path: Path | None, seq: str, out: Path,
                 method: str | None = None, backbone: Path | None = None) -> Path:
-        from egorelight_cli.runtime import resolve_device
-
         capture, capture_artifact, calibration, calibration_artifact = load_inputs(capture_path, calibration_path)
         cfg = self.run.config()
         method = method or str(cfg.predict.method)
@@ -153,7 +149,7 @@ class EgodepthCommands:
                                           f"{role} images, the capture has {c.width}x{c.height}", model_path)
             if model.prior_channels and backbone is None:
                 raise EgorelightError("this egodepth model was trained with a Depth-Anything-V2 backbone: pass --backbone")
-        device = resolve_device(self.run.device)
+        device = self.run.compute_device()
         prior = _prior(backbone, device) if model is not None and model.prior_channels else None
         frames, posed = ed.usable_frames(calibration, sequence, roles)
 

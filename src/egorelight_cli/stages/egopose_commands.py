@@ -26,7 +26,6 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from egorelight_cli import console
 from egorelight_cli.artifacts import Artifact, ArtifactWriter, open_artifact
 from egorelight_cli.config import Config
 from egorelight_cli.errors import EgorelightError
@@ -41,17 +40,6 @@ from egorelight_cli.stages.egopose import (EGOPOSE_MODEL_TYPE, EgoPoseSettings, 
 
 PREVIEW_PNG = "preview.png"
 PER_FRAME_NPZ = "per_frame.npz"
-
-
-def note_cpu_only(writer: ArtifactWriter, requested: str) -> None:
-    """egopose runs on the CPU whatever ``--device`` asks (its CUDA path is not written yet): say
-    so once when a GPU was requested or available, and record the device actually used."""
-    from egorelight_cli.runtime import resolve_device
-
-    if resolve_device(requested).type != "cpu":
-        console.info("egopose: runs on the CPU for now (no CUDA path yet); --device is ignored")
-    writer.runtime["device"] = "cpu"
-    writer.runtime["device_requested"] = requested
 
 
 @dataclass
@@ -134,7 +122,6 @@ class EgoPoseCommands:
             if writer.single_file:
                 raise EgorelightError("an egopose model is a directory artifact: give --out a directory name", out)
             settings = EgoPoseSettings(cfg)
-            note_cpu_only(writer, self.run.device)
             rig = rig_geometry(capture, calibration)
             frames = load_frames(capture, calibration, sequence, int(cfg.input_size), only_content=True)
             started = time.perf_counter()
@@ -164,7 +151,6 @@ class EgoPoseCommands:
         inputs = [a for a in (capture_artifact, calibration_artifact, model_artifact) if a is not None]
 
         def write(writer: ArtifactWriter, cfg: Config) -> None:
-            note_cpu_only(writer, self.run.device)
             rig = rig_geometry(capture, calibration)
             frames = load_frames(capture, calibration, sequence, model.input_size)
             started = time.perf_counter()
