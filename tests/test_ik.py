@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 import pytest
 import torch
@@ -241,28 +239,6 @@ def test_model_training_and_pca(character):
 
 
 # ------------------------------------------------------------------------------------ CLI
-@dataclass
-class Result:
-    returncode: int
-    stderr: str
-
-
-@pytest.fixture
-def run(capsys):
-    """The CLI in-process (``main`` as the console script runs it): exit code and stderr."""
-    from egorelight_cli.cli import main
-
-    def invoke(*args) -> Result:
-        capsys.readouterr()
-        try:
-            main([str(a) for a in args])
-            code = 0
-        except SystemExit as exc:
-            code = int(exc.code or 0)
-        return Result(code, capsys.readouterr().err)
-    return invoke
-
-
 def assert_one_line_error(result, *fragments):
     assert result.returncode == 2, result.stderr
     lines = result.stderr.strip().splitlines()
@@ -361,3 +337,98 @@ def test_stage_yaml_defaults_match_the_settings_defaults():
     assert tiny.solver == "lbfgs" and tiny.w_reg == 0.5 and tiny.lbfgs_iterations < IKSettings().lbfgs_iterations
     with pytest.raises(EgorelightError, match="unknown ik solver"):
         IKSettings.from_config(resolve_config("ik", "cpu", ("solver=newton",)))
+
+
+# ------------------------------------------------------------------------------ robustness
+def test_huber_data_term_energy_and_gradient_agree(character, model):
+    """The reweighted Gauss-Newton terms (``local_terms``) are the Huber energy and half its
+    gradient (autograd of ``energy``), and far keypoints cost less than their squared distance."""
+    T, rng = 4, np.random.default_rng(9)
+    theta = smooth_motion(character, model, T=T, seed=9)
+    index = classify_dofs(character).body[:8]
+    S = np.zeros((character.skeleton.num_dofs, len(index)))
+    S[index, np.arange(len(index))] = 1.0
+    base = theta.copy()
+    base[:, index] = 0.0
+    x = theta[:, index] + 0.05 * rng.normal(size=(T, len(index)))
+    targets = fitted_keypoints(character, theta)
+    targets[:, ::4] += 0.5  # every 4th keypoint half a metre off: beyond delta
+
+    def problem(delta):
+        return IK._StageProblem("t", character, S, base, x, targets, np.full((T, 57), 10.0), np.zeros(len(index)),
+                                np.zeros(0, np.int64), model.theta_bar, 0.0, 0.0, False, 64, huber_delta_m=delta)
+    huber = problem(0.1)
+    e, _, g = huber.local_terms(x)
+    xt = torch.tensor(x, requires_grad=True)
+    energy = huber.energy(xt)
+    energy.backward()
+    np.testing.assert_allclose(e.sum(), float(energy.detach()), rtol=1e-6)
+    np.testing.assert_allclose(g, 0.5 * xt.grad.numpy(), rtol=1e-3, atol=1e-4 * np.abs(g).max())
+    assert float(problem(None).energy(torch.tensor(x))) > 2 * float(energy.detach())
+
+
+def test_one_absurd_keypoint_is_rejected_and_the_fit_unharmed(character, model):
+    theta = smooth_motion(character, model, T=20, seed=10)
+    kp = keypoints_of(character, theta, noise=0.005, seed=11)
+    clean = solve_ik(character, kp, model, FAST)
+    assert not clean.rejected.any() and fit_metrics(clean)["rejected_keypoints"] == 0
+    xyz = kp.xyz.copy()
+    xyz[7, 5, 0] = 1e9  # one coordinate of one keypoint
+    result = solve_ik(character, Keypoints(xyz, kp.confidence, kp.frame_ids, kp.names, 30.0), model, FAST)
+    assert result.rejected.sum() == 1 and result.rejected[7, 5] and np.isnan(result.residual_m[7, 5])
+    assert fit_metrics(result)["rejected_keypoints"] == 1 and fit_metrics(result)["rejected_frames"] == 1
+    moved = np.linalg.norm(result.fitted_keypoints - clean.fitted_keypoints, axis=-1)
+    assert moved.max() < 0.03  # within a few cm of the clean fit everywhere
+
+
+def test_a_keypoint_far_off_the_first_fit_is_rejected(character, model):
+    """1.5 m off (inside the body-distance threshold): the Huber term bounds its pull, the
+    residual test after the first fit drops it and the refit matches the clean fit."""
+    theta = smooth_motion(character, model, T=20, seed=12)
+    kp = keypoints_of(character, theta, noise=0.005, seed=13)
+    clean = solve_ik(character, kp, model, FAST)
+    xyz = kp.xyz.copy()
+    xyz[9:12, 4] += [1.5, 0.0, 0.0]  # a wrist/elbow keypoint swept away in three frames
+    dirty = Keypoints(xyz, kp.confidence, kp.frame_ids, kp.names, 30.0)
+    result = solve_ik(character, dirty, model, FAST)
+    assert result.rejected[9:12, 4].all() and result.rejected.sum() == 3
+    assert np.linalg.norm(result.fitted_keypoints - clean.fitted_keypoints, axis=-1).max() < 0.03
+    plain = solve_ik(character, dirty, model, IKSettings(hand_samples=1000, robust_loss="l2", outlier_residual_factor=0))
+    assert np.linalg.norm(plain.fitted_keypoints - clean.fitted_keypoints, axis=-1).max() > 0.1  # the paper's l2 is dragged
+
+
+def test_keypoints_in_the_wrong_unit_are_refused(character, model):
+    kp = keypoints_of(character, smooth_motion(character, model, T=5, seed=14))
+    for factor, hint in ((1000.0, "millimetres"), (0.001, "not metres")):
+        scaled = Keypoints(kp.xyz * factor, kp.confidence, kp.frame_ids, kp.names, 30.0)
+        with pytest.raises(EgorelightError, match=f"keypoints span .* m, a body spans about 2 m.*{hint}"):
+            solve_ik(character, scaled, model, FAST)
+
+
+def test_cli_outlier_metrics_units_and_invalid_config(run, sequence, tmp_path, character):
+    import json
+
+    from egorelight_cli.io.keypoints import read_keypoints_npz
+
+    keypoints = read_keypoints_npz(sequence / "kp.npz")
+    xyz = keypoints.xyz.copy()
+    xyz[3, 2, 1] = 1e9
+    write_keypoints_npz(tmp_path / "outlier.npz", Keypoints(xyz, keypoints.confidence, keypoints.frame_ids, keypoints.names))
+    result = run("ik", "--in", tmp_path / "outlier.npz", "--out", tmp_path / "m", "--preset", "tiny")
+    assert result.returncode == 0, result.stderr
+    manifest = json.loads((tmp_path / "m" / "manifest.json").read_text())
+    assert manifest["metrics"]["rejected_keypoints"] == 1 and manifest["metrics"]["mpjpe_input_all_cm"] < 2
+    assert np.abs(read_motion_npz(tmp_path / "m" / "motion.npz").theta[:, :3]).max() < 10  # root in metres, not 1e7
+    write_keypoints_npz(tmp_path / "mm.npz", Keypoints(np.round(keypoints.xyz * 1000), keypoints.confidence,
+                                                       keypoints.frame_ids, keypoints.names))
+    assert_one_line_error(run("ik", "--in", tmp_path / "mm.npz", "--out", tmp_path / "n"), "keypoints span", "mm.npz")
+    (tmp_path / "x.bvh").write_text("HIERARCHY\n")
+    for key_value, inp, fragment in (("lm.iterations=-5", "kp.npz", "lm.iterations"),
+                                     ("lm.chunk_frames=0", "kp.npz", "lm.chunk_frames"),
+                                     ("hand_pca.components=100", "kp.npz", "hand_pca.components"),
+                                     ("global_keypoints=[Neck,Nose,LeftArm]", "kp.npz", "'Nose'"),
+                                     ("robust.loss=cauchy", "kp.npz", "robust.loss"),
+                                     ("bvh.scale=-1", "x.bvh", "bvh.scale")):
+        source = tmp_path / inp if inp == "x.bvh" else sequence / inp
+        assert_one_line_error(run("ik", "--in", source, "--out", tmp_path / "bad", "--set", key_value), fragment)
+    assert not (tmp_path / "bad").exists()

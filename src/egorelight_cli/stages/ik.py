@@ -17,6 +17,13 @@ and any Gauss-Newton solver minimise). The data residual is measured in ``length
 (default decimetres): the paper's weights only mean something relative to a length unit; this
 one was the best round unit in a noise experiment (see ``stages/ik.yaml``).
 
+Robustness (ours, :mod:`egorelight_cli.stages.ik_robust`; ``robust`` in ``stages/ik.yaml``): the
+data term is Huber by default (``robust.loss: l2`` is the paper's squared norm): a keypoint off by
+more than ``huber_delta_m`` pulls with a bounded force. Keypoints far from their frame's body
+(``outlier_distance_m``), and keypoints far off a first fit (``residual_factor`` x the median
+residual and ``min_residual_m``; the motion is then fitted again) are dropped and counted
+(``rejected_keypoints``); keypoints spanning far more (or less) than a body are a unit error.
+
 Hierarchy (paper): (1) global 6D pose (the root chain DoFs) against the torso keypoints with the
 body at its mean pose, (2) body DoFs (with the root, by default), (3) hands, each hand's finger
 DoFs constrained to ``theta_hand = mean + basis @ eta`` (PCA, 6 components by default). Hands
@@ -58,7 +65,7 @@ import math
 import re
 import time
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 
 import numpy as np
 import scipy.sparse
@@ -67,6 +74,7 @@ from scipy.linalg import cho_solve_banded, cholesky_banded
 from scipy.linalg.blas import dsbmv
 
 from egorelight_cli import console
+from egorelight_cli.config import flatten, load_stage_file
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.geometry.ik_jacobian import KeypointJacobian, dof_influence, root_chain_joints
 from egorelight_cli.geometry.rigid import project_to_rotation
@@ -74,6 +82,8 @@ from egorelight_cli.geometry.rotations import axis_angle_rotation
 from egorelight_cli.geometry.skeleton import forward_kinematics
 from egorelight_cli.io.keypoints import Keypoints
 from egorelight_cli.io.motion import Motion
+from egorelight_cli.stages.ik_robust import (ROBUST_LOSSES, check_keypoint_units, distant_keypoints, huber_factors,
+                                             residual_outliers)
 from egorelight_cli.structures.character import Character
 from egorelight_cli.structures.keypoints import BODY_SLICE, LEFT_HAND_SLICE, RIGHT_HAND_SLICE
 from egorelight_cli.structures.skeleton import PRISMATIC, REVOLUTE
@@ -87,66 +97,92 @@ JACOBIAN_DTYPE = torch.float32
 
 
 # ------------------------------------------------------------------------------------ settings
+_YAML_DEFAULTS = flatten(load_stage_file("ik")["defaults"])
+
+
+def _key(name: str, default=None):
+    """A settings field read from config key ``name`` (nested keys dotted); its default is the
+    one in ``stages/ik.yaml`` (the one place defaults live) unless given (``seed``)."""
+    value = _YAML_DEFAULTS[name] if default is None else default
+    return field(default=tuple(value) if isinstance(value, list) else value, metadata={"key": name})
+
+
+# settings field -> smallest allowed value (inclusive); the error names the config key
+_AT_LEAST = {"lm_iterations": 1, "lm_chunk_frames": 1, "lm_frame_iterations": 0, "lm_coarse_step": 1,
+             "lm_polish_iterations": 0, "lm_tolerance": 0.0, "lm_sweep_tolerance": 0.0, "lbfgs_iterations": 1,
+             "lbfgs_history": 1, "hand_components": 1, "hand_samples": 2, "min_confidence": 0.0,
+             "outlier_residual_factor": 0.0, "outlier_min_residual_m": 0.0,
+             **{w: 0.0 for w in ("w_data", "w_temporal", "w_hand_temporal", "w_reg", "w_dof_limit")}}
+_POSITIVE = ("fps", "length_unit_m", "huber_delta_m", "outlier_distance_m", "min_span_m", "max_span_m")
+
+
 @dataclass(frozen=True)
 class IKSettings:
-    """Everything the solver reads (``stages/ik.yaml`` holds the same keys, nested)."""
+    """Everything the solver reads: one field per ``stages/ik.yaml`` key (``_key``), validated on
+    construction (a bad value is a one-line error naming its config key)."""
 
-    solver: str = "lm"
-    fps: float = 30.0
-    length_unit_m: float = 0.1
-    w_data: float = 1.0
-    w_temporal: float = 3.0
-    w_hand_temporal: float = 30.0
-    w_reg: float = 0.01
-    w_dof_limit: float = 0.1
-    min_confidence: float = 0.0
-    global_keypoints: tuple[str, ...] = ("Neck", "LeftArm", "RightArm", "LeftUpLeg", "RightUpLeg")
-    body_stage_includes_root: bool = True
-    regularise_root: bool = False
-    project_limits: bool = True
-    lm_iterations: int = 30
-    lm_tolerance: float = 1e-3
-    lm_chunk_frames: int = 1024
-    lm_frame_iterations: int = 30
-    lm_sweep_tolerance: float = 0.03
-    lm_coarse_step: int = 4
-    lm_polish_iterations: int = 2
-    lbfgs_iterations: int = 100
-    lbfgs_history: int = 100
-    hand_components: int = 6
-    hand_samples: int = 4000
-    seed: int = 0
+    solver: str = _key("solver")
+    fps: float = _key("fps")
+    length_unit_m: float = _key("length_unit_m")
+    w_data: float = _key("weights.data")
+    w_temporal: float = _key("weights.temporal")
+    w_hand_temporal: float = _key("weights.hand_temporal")
+    w_reg: float = _key("weights.reg")
+    w_dof_limit: float = _key("weights.dof_limit")
+    min_confidence: float = _key("min_confidence")
+    global_keypoints: tuple[str, ...] = _key("global_keypoints")
+    body_stage_includes_root: bool = _key("body_stage_includes_root")
+    regularise_root: bool = _key("regularise_root")
+    project_limits: bool = _key("project_limits")
+    lm_iterations: int = _key("lm.iterations")
+    lm_tolerance: float = _key("lm.tolerance")
+    lm_chunk_frames: int = _key("lm.chunk_frames")
+    lm_frame_iterations: int = _key("lm.frame_iterations")
+    lm_sweep_tolerance: float = _key("lm.sweep_tolerance")
+    lm_coarse_step: int = _key("lm.coarse_step")
+    lm_polish_iterations: int = _key("lm.polish_iterations")
+    lbfgs_iterations: int = _key("lbfgs.iterations")
+    lbfgs_history: int = _key("lbfgs.history")
+    hand_components: int = _key("hand_pca.components")
+    hand_samples: int = _key("hand_pca.synthetic_samples")
+    robust_loss: str = _key("robust.loss")
+    huber_delta_m: float = _key("robust.huber_delta_m")
+    outlier_distance_m: float = _key("robust.outlier_distance_m")
+    outlier_residual_factor: float = _key("robust.residual_factor")
+    outlier_min_residual_m: float = _key("robust.min_residual_m")
+    min_span_m: float = _key("robust.min_span_m")
+    max_span_m: float = _key("robust.max_span_m")
+    seed: int = _key("seed", 0)
 
     def __post_init__(self) -> None:
         if self.solver not in SOLVERS:
             raise EgorelightError(f"unknown ik solver {self.solver!r}; expected one of {', '.join(SOLVERS)}")
-        if not self.length_unit_m > 0:
-            raise EgorelightError(f"ik length_unit_m must be positive, got {self.length_unit_m}")
-        for name in ("w_data", "w_temporal", "w_hand_temporal", "w_reg", "w_dof_limit"):
-            if getattr(self, name) < 0:
-                raise EgorelightError(f"ik weight {name} must not be negative, got {getattr(self, name)}")
-        if self.hand_components < 1:
-            raise EgorelightError("ik hand_pca.components must be at least 1")
+        if self.robust_loss not in ROBUST_LOSSES:
+            raise EgorelightError(f"ik robust.loss must be one of {', '.join(ROBUST_LOSSES)}, got {self.robust_loss!r}")
+        for name, minimum in _AT_LEAST.items():
+            if not getattr(self, name) >= minimum:
+                raise EgorelightError(f"ik {self.key(name)} must be at least {minimum}, got {getattr(self, name)}")
+        for name in _POSITIVE:
+            if not 0 < getattr(self, name) < math.inf:
+                raise EgorelightError(f"ik {self.key(name)} must be a positive number, got {getattr(self, name)}")
+        if not self.min_span_m < self.max_span_m:
+            raise EgorelightError(f"ik robust.min_span_m ({self.min_span_m}) must be below robust.max_span_m "
+                                  f"({self.max_span_m})")
+
+    @classmethod
+    def key(cls, name: str) -> str:
+        """The config key (``lm.iterations``) of settings field ``name`` (``lm_iterations``)."""
+        return next(f.metadata["key"] for f in fields(cls) if f.name == name)
 
     @classmethod
     def from_config(cls, cfg: Mapping) -> "IKSettings":
         """From a resolved ``ik`` stage config (see ``stages/ik.yaml``)."""
-        w, lm, lbfgs, pca = cfg["weights"], cfg["lm"], cfg["lbfgs"], cfg["hand_pca"]
-        return cls(
-            solver=str(cfg["solver"]), fps=float(cfg["fps"]), length_unit_m=float(cfg["length_unit_m"]),
-            w_data=float(w["data"]), w_temporal=float(w["temporal"]), w_hand_temporal=float(w["hand_temporal"]),
-            w_reg=float(w["reg"]), w_dof_limit=float(w["dof_limit"]), min_confidence=float(cfg["min_confidence"]),
-            global_keypoints=tuple(cfg["global_keypoints"]),
-            body_stage_includes_root=bool(cfg["body_stage_includes_root"]),
-            regularise_root=bool(cfg["regularise_root"]), project_limits=bool(cfg["project_limits"]),
-            lm_iterations=int(lm["iterations"]), lm_tolerance=float(lm["tolerance"]),
-            lm_chunk_frames=int(lm["chunk_frames"]), lm_frame_iterations=int(lm["frame_iterations"]),
-            lm_sweep_tolerance=float(lm["sweep_tolerance"]), lm_coarse_step=int(lm["coarse_step"]),
-            lm_polish_iterations=int(lm["polish_iterations"]),
-            lbfgs_iterations=int(lbfgs["iterations"]),
-            lbfgs_history=int(lbfgs["history"]), hand_components=int(pca["components"]),
-            hand_samples=int(pca["synthetic_samples"]), seed=int(cfg.get("seed", 0)),
-        )
+        flat = flatten(cfg)
+        values = {}
+        for f in fields(cls):
+            value = flat.get(f.metadata["key"], f.default)
+            values[f.name] = tuple(value) if isinstance(f.default, tuple) else type(f.default)(value)
+        return cls(**values)
 
 
 # ---------------------------------------------------------------------------------- DoF classes
@@ -402,6 +438,9 @@ def train_ik_model(character: Character, motions: Sequence[np.ndarray], settings
     theta_bar[groups.fixed] = character.rest_theta[groups.fixed]
     hands = []
     for side, index in groups.hands.items():
+        if settings.hand_components > len(index):
+            raise EgorelightError(f"ik hand_pca.components is {settings.hand_components} but the character's {side} "
+                                  f"hand has {len(index)} finger DoFs")
         synthetic = synthetic_hand_poses(character, index, settings.hand_samples, rng)
         source = data[:, index] if len(data) >= 2 else synthetic
         mean, basis, variance = fit_pca(source, settings.hand_components, fallback=synthetic)
@@ -439,6 +478,7 @@ class IKResult:
         stages: per-stage reports.
         solver: ``lm`` or ``lbfgs``.
         seconds: wall time of the solve.
+        rejected: (T,K) bool, keypoints dropped as gross outliers (None: no fit).
     """
 
     theta: np.ndarray
@@ -449,6 +489,7 @@ class IKResult:
     stages: tuple[StageReport, ...]
     solver: str
     seconds: float
+    rejected: np.ndarray | None = None
 
     def motion(self, dof_names) -> Motion:
         return Motion(self.theta, tuple(dof_names), self.frame_ids, self.fps, self.fitted_keypoints, self.residual_m)
@@ -474,9 +515,10 @@ class _StageProblem:
     def __init__(self, name: str, character: Character, S: np.ndarray, base: np.ndarray, x0: np.ndarray,
                  targets: np.ndarray, sqrt_weights: np.ndarray, w_temporal: np.ndarray,
                  reg_index: np.ndarray, reg_target: np.ndarray, w_reg: float, w_limit: float,
-                 project: bool, chunk: int):
+                 project: bool, chunk: int, huber_delta_m: float | None = None):
         sk = character.skeleton
         self.name, self.character, self.chunk = name, character, max(int(chunk), 1)
+        self.huber_delta_m = huber_delta_m  # None: squared data term; else Huber (ik_robust)
         self.S = np.asarray(S, dtype=np.float64)  # (D,n)
         self.affected = np.nonzero(np.abs(self.S).sum(axis=1) > 0)[0]
         S_aff = self.S[self.affected]
@@ -540,9 +582,11 @@ class _StageProblem:
     def energy(self, x: torch.Tensor) -> torch.Tensor:
         self.evaluations += 1
         theta = self.theta(x)
-        kp = self.jacobian.positions(theta)
-        r = (kp - self.targets) * self.sqrt_w[..., None]
-        total = (r * r).sum()
+        diff = self.jacobian.positions(theta) - self.targets
+        r2 = ((diff * self.sqrt_w[..., None]) ** 2).sum(dim=-1)
+        if self.huber_delta_m is not None:
+            r2 = r2 * huber_factors(_norm(diff), self.huber_delta_m)[0]
+        total = r2.sum()
         if x.shape[0] >= 3:
             dx = x[2:] - 2 * x[1:-1] + x[:-2]
             total = total + (dx * dx * torch.as_tensor(self.w_temporal, dtype=x.dtype)).sum()
@@ -574,13 +618,21 @@ class _StageProblem:
             sw = self.sqrt_w.index_select(0, index)
             # float32 Jacobian: half the memory traffic; J^T J and J^T r to ~1e-7, plenty for a step
             kp, Jt = self.jacobian.weighted_transpose(theta.to(JACOBIAN_DTYPE), sw)  # (t,k,3), (t,a,3k)
-            kp = kp.to(DTYPE)
-            r = ((kp - self.targets.index_select(0, index)) * sw[..., None]).reshape(t, -1)
+            diff = kp.to(DTYPE) - self.targets.index_select(0, index)
+            r = (diff * sw[..., None]).reshape(t, -1)
+            et = (r * r).reshape(t, -1, 3).sum(dim=2)  # (t,k)
+            if self.huber_delta_m is not None:  # reweighted Gauss-Newton: rows scaled by sqrt(min(1, delta/d))
+                energy_factor, row_scale = huber_factors(_norm(diff), self.huber_delta_m)
+                et = et * energy_factor
+                if bool((row_scale < 1).any()):
+                    row_scale = row_scale.repeat_interleave(3, dim=1)
+                    Jt = Jt * row_scale.to(JACOBIAN_DTYPE)[:, None, :]
+                    r = r * row_scale
+            et = et.sum(dim=1)
             if not self.is_selection:
                 Jt = self.S_cols_t.T.to(JACOBIAN_DTYPE) @ Jt
             At = (Jt @ Jt.transpose(1, 2)).to(DTYPE)
             gt = (Jt @ r.to(JACOBIAN_DTYPE)[..., None])[..., 0].to(DTYPE)
-            et = (r * r).sum(dim=1)
             if self.w_reg > 0:
                 res = theta[:, self.reg_index] - self.reg_target
                 At = At + self.w_reg * (self.S_reg_t.T @ self.S_reg_t)
@@ -707,6 +759,11 @@ class _StageProblem:
             except np.linalg.LinAlgError:  # not positive definite (round-off): damp harder
                 return self.solve(A, g, lam * 10.0 + 1e-6, prescribed)
             return cho_solve_banded((factor, True), rhs, check_finite=False).reshape(T, n)
+
+
+def _norm(diff: torch.Tensor) -> torch.Tensor:
+    """Lengths (...,) of (...,3) vectors, with a finite gradient at zero."""
+    return ((diff * diff).sum(dim=-1) + 1e-24).sqrt()
 
 
 @contextlib.contextmanager
@@ -1003,23 +1060,65 @@ def check_keypoints_for(character: Character, keypoints: Keypoints, settings: IK
         raise EgorelightError("keypoint names differ from the character's keypoint layout", path)
     if keypoints.num_frames == 0:
         raise EgorelightError("keypoints hold no frames", path)
-    if not (_data_weights(keypoints, settings) > 0).any():
+    weights = _data_weights(keypoints, settings)
+    if not (weights > 0).any():
         raise EgorelightError("no usable keypoints: every keypoint is missing (NaN) or has confidence "
                               f"<= {settings.min_confidence}", path)
+    unknown = [n for n in settings.global_keypoints if n not in character.keypoint_names]
+    if unknown:
+        raise EgorelightError(f"ik global_keypoints names {', '.join(map(repr, unknown))}, not a keypoint of the "
+                              f"character (it has {', '.join(character.keypoint_names[:15])}, ...)")
+    check_keypoint_units(keypoints.xyz, weights > 0, settings.min_span_m, settings.max_span_m, path)
 
 
 def solve_ik(character: Character, keypoints: Keypoints, model: IKModel | None = None,
              settings: IKSettings = IKSettings()) -> IKResult:
     """Solve the motion of ``character`` that best explains ``keypoints`` (see the module
-    docstring). ``model`` defaults to :func:`default_ik_model`."""
+    docstring). ``model`` defaults to :func:`default_ik_model`.
+
+    Gross outliers (:mod:`egorelight_cli.stages.ik_robust`) are dropped: keypoints far from their
+    frame's body before the fit, then keypoints far off a first fit (the motion is fitted again
+    without them); ``IKResult.rejected`` marks both.
+    """
     started = time.perf_counter()
     check_keypoints_for(character, keypoints, settings)
     model = (model or default_ik_model(character, settings)).check_character(character)
+    xyz = keypoints.xyz.astype(np.float64)
+    conf = _data_weights(keypoints, settings)
+    rejected = distant_keypoints(xyz, conf > 0, settings.outlier_distance_m)
+    conf[rejected] = 0.0
+    theta, reports = _fit(character, model, xyz, conf, settings)
+    fitted, residual = _fit_residuals(character, theta, xyz, conf)
+    again = residual_outliers(residual, conf > 0, settings.outlier_residual_factor, settings.outlier_min_residual_m)
+    if again.any():
+        console.debug(f"ik: {int(again.sum())} keypoints far off the first fit dropped, fitting again")
+        rejected |= again
+        conf[again] = 0.0
+        theta, more = _fit(character, model, xyz, conf, settings)
+        reports += more
+        fitted, residual = _fit_residuals(character, theta, xyz, conf)
+    fps = keypoints.fps or settings.fps
+    return IKResult(theta, keypoints.frame_ids.copy(), float(fps), fitted, residual, tuple(reports), settings.solver,
+                    time.perf_counter() - started, rejected)
+
+
+def _fit_residuals(character: Character, theta: np.ndarray, xyz: np.ndarray, conf: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """FK keypoints (T,K,3) of ``theta`` and their distance (T,K) in metres to ``xyz``, NaN where
+    ``conf`` is 0."""
+    fitted = fitted_keypoints(character, theta)
+    residual = np.linalg.norm(fitted - xyz, axis=-1)
+    residual[conf <= 0] = np.nan
+    return fitted, residual
+
+
+def _fit(character: Character, model: IKModel, xyz: np.ndarray, conf: np.ndarray,
+         settings: IKSettings) -> tuple[np.ndarray, list[StageReport]]:
+    """The hierarchical solve (module docstring): theta (T,D) fitting keypoints ``xyz`` (T,K,3)
+    metres with confidences ``conf`` (T,K) (0: ignored), and the per-stage reports."""
     sk = character.skeleton
     D = sk.num_dofs
     groups = classify_dofs(character)
-    conf = _data_weights(keypoints, settings)
-    targets = np.nan_to_num(keypoints.xyz.astype(np.float64))
+    targets = np.where(conf[..., None] > 0, np.nan_to_num(xyz), 0.0)
     sqrt_w = np.sqrt(settings.w_data * conf) / settings.length_unit_m
     theta_bar = model.theta_bar.copy()
     theta_init = theta_bar.copy()
@@ -1039,7 +1138,8 @@ def solve_ik(character: Character, keypoints: Keypoints, model: IKModel | None =
               warm_start: bool = False):
         problem = _StageProblem(name, character, S, base, x0, targets, sqrt_weights,
                                 np.full(S.shape[1], w_temporal), reg_index, theta_bar, settings.w_reg,
-                                settings.w_dof_limit, settings.project_limits, settings.lm_chunk_frames)
+                                settings.w_dof_limit, settings.project_limits, settings.lm_chunk_frames,
+                                settings.huber_delta_m if settings.robust_loss == "huber" else None)
         problem.warm_start = warm_start
         if not len(problem.keypoints):  # nothing observed moves these DoFs: keep the initial guess
             return base + x0 @ S.T
@@ -1086,12 +1186,7 @@ def solve_ik(character: Character, keypoints: Keypoints, model: IKModel | None =
         theta = stage("hands", S, np.concatenate(x0_parts, axis=1), base, settings.w_hand_temporal, sqrt_w)
     if settings.project_limits:
         theta = clamp_to_limits(theta, sk.dof_limits, np.setdiff1d(np.arange(D), groups.fixed))
-    fitted = fitted_keypoints(character, theta)
-    residual = np.linalg.norm(fitted - keypoints.xyz.astype(np.float64), axis=-1)
-    residual[conf <= 0] = np.nan
-    fps = keypoints.fps or settings.fps
-    return IKResult(theta, keypoints.frame_ids.copy(), float(fps), fitted, residual, tuple(reports), settings.solver,
-                    time.perf_counter() - started)
+    return theta, reports
 
 
 def fitted_keypoints(character: Character, theta: np.ndarray, chunk: int = 512) -> np.ndarray:
@@ -1117,10 +1212,13 @@ def _part_errors(distance_m: np.ndarray, prefix: str) -> dict[str, float | None]
 
 
 def fit_metrics(result: IKResult) -> dict:
-    """MPJPE (cm) of the fitted keypoints against the input keypoints (body, hands, all), and
-    the solver's timing."""
+    """MPJPE (cm) of the fitted keypoints against the input keypoints (body, hands, all; rejected
+    outliers left out), the number of rejected keypoints (and of frames with one), and the
+    solver's timing."""
     metrics = _part_errors(result.residual_m, "mpjpe_input")
     T = max(len(result.theta), 1)
+    rejected = result.rejected if result.rejected is not None else np.zeros((len(result.theta), 0), bool)
+    metrics.update({"rejected_keypoints": int(rejected.sum()), "rejected_frames": int(rejected.any(axis=1).sum())})
     metrics.update({"solver": result.solver, "frames": int(len(result.theta)), "solve_s": round(result.seconds, 3),
                     "ms_per_frame": round(1000.0 * result.seconds / T, 3),
                     "stages": [asdict(s) for s in result.stages]})

@@ -83,6 +83,10 @@ def _bvh_input(path: Path, character: Character, cfg: Config) -> IKInput:
     stride = int(bvh["stride"])
     if stride < 1:
         raise EgorelightError(f"ik bvh.stride must be at least 1, got {stride}")
+    if not float(bvh["scale"]) >= 0:
+        raise EgorelightError(f"ik bvh.scale must be 0 (fit to the character) or positive, got {bvh['scale']}")
+    if not float(bvh["unit_scale"]) > 0:
+        raise EgorelightError(f"ik bvh.unit_scale must be positive, got {bvh['unit_scale']}")
     clip = read_bvh(path)
     keypoints, mapping = bvh_keypoints(clip, unit_scale=float(bvh["unit_scale"]), up_axis=str(bvh["up_axis"]),
                                        keypoint_names=character.keypoint_names)
@@ -219,8 +223,9 @@ class IKCommands:
     def ik(self, input_path: Path, character_spec: str, model_path: Path | None, gt_path: Path | None, out: Path) -> Path:
         from egorelight_cli.stages.character_commands import load_character
 
-        character, character_artifact = load_character(character_spec)
         cfg = self.run.config()
+        settings = IKSettings.from_config(cfg)  # a bad config value fails before anything is read
+        character, character_artifact = load_character(character_spec)
         source = load_ik_input(input_path, character, cfg)
         inputs = [a for a in (source.artifact, character_artifact) if a is not None]
         sources = source.sources + character_sources(character_spec, character_artifact)
@@ -237,7 +242,7 @@ class IKCommands:
         if source.keypoints is not None:
             from egorelight_cli.stages.ik import check_keypoints_for
 
-            check_keypoints_for(character, source.keypoints, IKSettings.from_config(cfg), input_path)
+            check_keypoints_for(character, source.keypoints, settings, input_path)
 
         def write(writer: ArtifactWriter, cfg: Config) -> None:
             settings = IKSettings.from_config(cfg)
@@ -260,6 +265,7 @@ class IKCommands:
     def train(self, motion_paths: tuple[Path, ...], character_spec: str, out: Path) -> Path:
         from egorelight_cli.stages.character_commands import load_character
 
+        IKSettings.from_config(self.run.config())  # a bad config value fails before anything is read
         character, character_artifact = load_character(character_spec)
         inputs = [a for a in (character_artifact,) if a is not None]
         sources = character_sources(character_spec, character_artifact)
