@@ -65,7 +65,7 @@ import math
 import re
 import time
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 import scipy.sparse
@@ -74,7 +74,6 @@ from scipy.linalg import cho_solve_banded, cholesky_banded
 from scipy.linalg.blas import dsbmv
 
 from egorelight_cli import console
-from egorelight_cli.config import flatten, load_stage_file
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.geometry.ik_jacobian import KeypointJacobian, dof_influence, root_chain_joints
 from egorelight_cli.geometry.rigid import project_to_rotation
@@ -82,107 +81,17 @@ from egorelight_cli.geometry.rotations import axis_angle_rotation
 from egorelight_cli.geometry.skeleton import forward_kinematics
 from egorelight_cli.io.keypoints import Keypoints
 from egorelight_cli.io.motion import Motion
-from egorelight_cli.stages.ik_robust import (ROBUST_LOSSES, check_keypoint_units, distant_keypoints, huber_factors,
-                                             residual_outliers)
+from egorelight_cli.stages.ik_robust import check_keypoint_units, distant_keypoints, huber_factors, residual_outliers
+from egorelight_cli.stages.ik_settings import IKSettings
 from egorelight_cli.structures.character import Character
 from egorelight_cli.structures.keypoints import BODY_SLICE, LEFT_HAND_SLICE, RIGHT_HAND_SLICE
 from egorelight_cli.structures.skeleton import PRISMATIC, REVOLUTE
 
-SOLVERS = ("lm", "lbfgs")
 SIDES = ("Left", "Right")
 FINGER_JOINT = re.compile(r"^(Left|Right)Hand(Thumb|Index|Middle|Ring|Pinky)")
 CURL_JOINT = re.compile(r"^(Left|Right)Hand(Thumb|Index|Middle|Ring|Pinky)\d$")
 DTYPE = torch.float64
 JACOBIAN_DTYPE = torch.float32
-
-
-# ------------------------------------------------------------------------------------ settings
-_YAML_DEFAULTS = flatten(load_stage_file("ik")["defaults"])
-
-
-def _key(name: str, default=None):
-    """A settings field read from config key ``name`` (nested keys dotted); its default is the
-    one in ``stages/ik.yaml`` (the one place defaults live) unless given (``seed``)."""
-    value = _YAML_DEFAULTS[name] if default is None else default
-    return field(default=tuple(value) if isinstance(value, list) else value, metadata={"key": name})
-
-
-# settings field -> smallest allowed value (inclusive); the error names the config key
-_AT_LEAST = {"lm_iterations": 1, "lm_chunk_frames": 1, "lm_frame_iterations": 0, "lm_coarse_step": 1,
-             "lm_polish_iterations": 0, "lm_tolerance": 0.0, "lm_sweep_tolerance": 0.0, "lbfgs_iterations": 1,
-             "lbfgs_history": 1, "hand_components": 1, "hand_samples": 2, "min_confidence": 0.0,
-             "outlier_residual_factor": 0.0, "outlier_min_residual_m": 0.0,
-             **{w: 0.0 for w in ("w_data", "w_temporal", "w_hand_temporal", "w_reg", "w_dof_limit")}}
-_POSITIVE = ("fps", "length_unit_m", "huber_delta_m", "outlier_distance_m", "min_span_m", "max_span_m")
-
-
-@dataclass(frozen=True)
-class IKSettings:
-    """Everything the solver reads: one field per ``stages/ik.yaml`` key (``_key``), validated on
-    construction (a bad value is a one-line error naming its config key)."""
-
-    solver: str = _key("solver")
-    fps: float = _key("fps")
-    length_unit_m: float = _key("length_unit_m")
-    w_data: float = _key("weights.data")
-    w_temporal: float = _key("weights.temporal")
-    w_hand_temporal: float = _key("weights.hand_temporal")
-    w_reg: float = _key("weights.reg")
-    w_dof_limit: float = _key("weights.dof_limit")
-    min_confidence: float = _key("min_confidence")
-    global_keypoints: tuple[str, ...] = _key("global_keypoints")
-    body_stage_includes_root: bool = _key("body_stage_includes_root")
-    regularise_root: bool = _key("regularise_root")
-    project_limits: bool = _key("project_limits")
-    lm_iterations: int = _key("lm.iterations")
-    lm_tolerance: float = _key("lm.tolerance")
-    lm_chunk_frames: int = _key("lm.chunk_frames")
-    lm_frame_iterations: int = _key("lm.frame_iterations")
-    lm_sweep_tolerance: float = _key("lm.sweep_tolerance")
-    lm_coarse_step: int = _key("lm.coarse_step")
-    lm_polish_iterations: int = _key("lm.polish_iterations")
-    lbfgs_iterations: int = _key("lbfgs.iterations")
-    lbfgs_history: int = _key("lbfgs.history")
-    hand_components: int = _key("hand_pca.components")
-    hand_samples: int = _key("hand_pca.synthetic_samples")
-    robust_loss: str = _key("robust.loss")
-    huber_delta_m: float = _key("robust.huber_delta_m")
-    outlier_distance_m: float = _key("robust.outlier_distance_m")
-    outlier_residual_factor: float = _key("robust.residual_factor")
-    outlier_min_residual_m: float = _key("robust.min_residual_m")
-    min_span_m: float = _key("robust.min_span_m")
-    max_span_m: float = _key("robust.max_span_m")
-    seed: int = _key("seed", 0)
-
-    def __post_init__(self) -> None:
-        if self.solver not in SOLVERS:
-            raise EgorelightError(f"unknown ik solver {self.solver!r}; expected one of {', '.join(SOLVERS)}")
-        if self.robust_loss not in ROBUST_LOSSES:
-            raise EgorelightError(f"ik robust.loss must be one of {', '.join(ROBUST_LOSSES)}, got {self.robust_loss!r}")
-        for name, minimum in _AT_LEAST.items():
-            if not getattr(self, name) >= minimum:
-                raise EgorelightError(f"ik {self.key(name)} must be at least {minimum}, got {getattr(self, name)}")
-        for name in _POSITIVE:
-            if not 0 < getattr(self, name) < math.inf:
-                raise EgorelightError(f"ik {self.key(name)} must be a positive number, got {getattr(self, name)}")
-        if not self.min_span_m < self.max_span_m:
-            raise EgorelightError(f"ik robust.min_span_m ({self.min_span_m}) must be below robust.max_span_m "
-                                  f"({self.max_span_m})")
-
-    @classmethod
-    def key(cls, name: str) -> str:
-        """The config key (``lm.iterations``) of settings field ``name`` (``lm_iterations``)."""
-        return next(f.metadata["key"] for f in fields(cls) if f.name == name)
-
-    @classmethod
-    def from_config(cls, cfg: Mapping) -> "IKSettings":
-        """From a resolved ``ik`` stage config (see ``stages/ik.yaml``)."""
-        flat = flatten(cfg)
-        values = {}
-        for f in fields(cls):
-            value = flat.get(f.metadata["key"], f.default)
-            values[f.name] = tuple(value) if isinstance(f.default, tuple) else type(f.default)(value)
-        return cls(**values)
 
 
 # ---------------------------------------------------------------------------------- DoF classes
