@@ -78,34 +78,40 @@ class CompositeSplats(torch.autograd.Function):
         # features with a column of ones, so one gather and one scatter give colour and alpha
         pair_features = torch.cat([features, features.new_ones(features.shape[0], 1)], 1).index_select(0, gid)
         out = features.new_zeros(num_pixels, pair_features.shape[1]).index_add_(0, pix, weight[:, None] * pair_features)
-        ctx.save_for_backward(pair, pair_features, gid, pix, seg_last, du, dv, raw, falloff, transmittance, weight)
-        ctx.num_splats = params.shape[0]
+        ctx.save_for_backward(params, pair_features, gid, pix, seg_last, du, dv, raw, falloff, transmittance, weight)
         return out
 
     @staticmethod
     def backward(ctx, grad_out):
-        pair, pair_features, gid, pix, seg_last, du, dv, raw, falloff, transmittance, weight = ctx.saved_tensors
-        grad_pair = grad_out.index_select(0, pix)  # (P,D+1)
+        params, pair_features, gid, pix, seg_last, du, dv, raw, falloff, transmittance, weight = ctx.saved_tensors
+        grad_pair = grad_out.contiguous().index_select(0, pix)  # (P,D+1)
         grad_weight = (grad_pair * pair_features).sum(1)
-        grad_features = grad_params = None
-        if ctx.needs_input_grad[1]:
-            weighted = weight[:, None] * grad_pair[:, :-1]
-            grad_features = weighted.new_zeros(ctx.num_splats, weighted.shape[1]).index_add_(0, gid, weighted)
-        if ctx.needs_input_grad[0]:
-            alpha = raw.clamp_max(ALPHA_MAX)
-            inclusive = torch.cumsum((weight * grad_weight).to(torch.float64), 0)
-            behind = (inclusive.index_select(0, seg_last) - inclusive).to(alpha.dtype)
-            grad_alpha = transmittance * grad_weight - behind / (1.0 - alpha)
-            grad_alpha = torch.where(raw < ALPHA_MAX, grad_alpha, torch.zeros_like(grad_alpha))
-            grad_q = -0.5 * grad_alpha * alpha
-            a, b, c = pair[:, 2], pair[:, 3], pair[:, 4]
-            per_pair = torch.stack([
-                -2.0 * grad_q * (a * du + b * dv),  # d/du_mean (du = x - u)
-                -2.0 * grad_q * (b * du + c * dv),
-                grad_q * du * du,
-                2.0 * grad_q * du * dv,
-                grad_q * dv * dv,
-                grad_alpha * falloff,
-            ], dim=1)
-            grad_params = per_pair.new_zeros(ctx.num_splats, 6).index_add_(0, gid, per_pair)
-        return grad_params, grad_features, None, None, None, None, None, None
+        alpha = raw.clamp_max(ALPHA_MAX)
+        inclusive = torch.cumsum((weight * grad_weight).to(torch.float64), 0)
+        behind = (inclusive.index_select(0, seg_last) - inclusive).to(alpha.dtype)
+        grad_alpha = transmittance * grad_weight - behind / (1.0 - alpha)
+        grad_alpha = torch.where(raw < ALPHA_MAX, grad_alpha, torch.zeros_like(grad_alpha))
+        grad_q = -0.5 * grad_alpha * alpha
+        # Per pair, the moments whose per-splat sums give every gradient: the splat's (a, b, c)
+        # are constant over its pairs, so they multiply in after the sum (cheap, per splat).
+        D = pair_features.shape[1] - 1
+        per_pair = du.new_empty(du.shape[0], 6 + D)
+        torch.mul(grad_q, du, out=per_pair[:, 0])
+        torch.mul(grad_q, dv, out=per_pair[:, 1])
+        torch.mul(per_pair[:, 0], du, out=per_pair[:, 2])
+        torch.mul(per_pair[:, 0], dv, out=per_pair[:, 3])
+        torch.mul(per_pair[:, 1], dv, out=per_pair[:, 4])
+        torch.mul(grad_alpha, falloff, out=per_pair[:, 5])
+        torch.mul(weight[:, None], grad_pair[:, :D], out=per_pair[:, 6:])
+        sums = per_pair.new_zeros(params.shape[0], 6 + D).index_add_(0, gid, per_pair)
+        q_du, q_dv, q_du2, q_dudv, q_dv2, grad_opacity = sums[:, :6].unbind(1)
+        a, b, c = params[:, 2], params[:, 3], params[:, 4]
+        grad_params = torch.stack([
+            -2.0 * (a * q_du + b * q_dv),  # du = x - u, so d/du_mean = -dq/d(du)
+            -2.0 * (b * q_du + c * q_dv),
+            q_du2,
+            2.0 * q_dudv,
+            q_dv2,
+            grad_opacity,
+        ], dim=1)
+        return grad_params, sums[:, 6:], None, None, None, None, None, None
