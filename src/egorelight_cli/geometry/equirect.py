@@ -96,6 +96,29 @@ def equirect_solid_angles(height: int, width: int | None = None) -> np.ndarray:
     return np.repeat(per_row[:, None], width, axis=1)
 
 
+def equirect_bilinear_weights(dirs: np.ndarray, height: int, width: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Flat texel indices (...,4) int64 and weights (...,4) of the bilinear lookup in directions (...,3).
+
+    Columns wrap around in azimuth; rows clamp at the poles. ``sum(weights * map.reshape(-1, C)[indices])``
+    is :func:`sample_equirect`.
+    """
+    height, width = _check_size(height, width)
+    coords = directions_to_equirect(dirs, height, width)
+    x = coords[..., 0] - 0.5
+    y = np.clip(coords[..., 1] - 0.5, 0.0, height - 1.0)
+    x0 = np.floor(x)
+    y0 = np.minimum(np.floor(y), height - 2) if height > 1 else np.zeros_like(y)
+    fx = x - x0
+    fy = y - y0 if height > 1 else np.zeros_like(y)
+    c0 = np.mod(x0, width).astype(np.int64)
+    c1 = np.mod(c0 + 1, width)
+    r0 = y0.astype(np.int64)
+    r1 = np.minimum(r0 + 1, height - 1)
+    indices = np.stack([r0 * width + c0, r0 * width + c1, r1 * width + c0, r1 * width + c1], axis=-1)
+    weights = np.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy], axis=-1)
+    return indices, weights
+
+
 def sample_equirect(envmap: np.ndarray, dirs: np.ndarray) -> np.ndarray:
     """Bilinear lookup of an equirect map (H,W,C) in directions (...,3) -> (...,C) float32.
 
@@ -103,20 +126,9 @@ def sample_equirect(envmap: np.ndarray, dirs: np.ndarray) -> np.ndarray:
     """
     envmap = check_envmap(envmap)
     height, width = envmap.shape[:2]
-    coords = directions_to_equirect(dirs, height, width)
-    x = coords[..., 0] - 0.5
-    y = np.clip(coords[..., 1] - 0.5, 0.0, height - 1.0)
-    x0 = np.floor(x)
-    y0 = np.minimum(np.floor(y), height - 2) if height > 1 else np.zeros_like(y)
-    fx = (x - x0)[..., None]
-    fy = (y - y0)[..., None] if height > 1 else np.zeros_like(y)[..., None]
-    c0 = np.mod(x0, width).astype(np.int64)
-    c1 = np.mod(c0 + 1, width)
-    r0 = y0.astype(np.int64)
-    r1 = np.minimum(r0 + 1, height - 1)
-    top = envmap[r0, c0] * (1.0 - fx) + envmap[r0, c1] * fx
-    bottom = envmap[r1, c0] * (1.0 - fx) + envmap[r1, c1] * fx
-    return (top * (1.0 - fy) + bottom * fy).astype(np.float32)
+    indices, weights = equirect_bilinear_weights(dirs, height, width)
+    texels = envmap.reshape(height * width, -1)[indices]  # (...,4,C)
+    return np.einsum("...k,...kc->...c", weights, texels).astype(np.float32)
 
 
 def yaw_rotation(yaw_deg: float) -> np.ndarray:

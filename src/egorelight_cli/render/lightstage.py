@@ -310,6 +310,24 @@ class LightStage:
             out[~filled] = sample_equirect(envmap, light_dirs)
         return out
 
+    def transfer(self, points: np.ndarray, normals: np.ndarray, visibility: np.ndarray | None = None) -> np.ndarray:
+        """(N,L) float64 per-light geometry ``G_l(x) = V_l max(0, n.w_l) Omega_l R_l^2 / |x - p_l|^2``.
+
+        The irradiance is ``E(x) = sum_l G_l(x) gain_l I_l``; ``visibility`` (N,L) bool/float,
+        default all visible. Points (N,3) metres, unit normals (N,3).
+        """
+        points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        normals = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
+        if visibility is not None and np.shape(visibility) != (len(points), self.num_lights):
+            raise EgorelightError(f"visibility must be ({len(points)},{self.num_lights}), got {np.shape(visibility)}")
+        to_light = self.positions[None] - points[:, None]
+        d2 = np.einsum("nlc,nlc->nl", to_light, to_light)
+        cos = np.clip(np.einsum("nlc,nc->nl", to_light, normals) / np.sqrt(d2), 0.0, None)
+        out = cos * (self.cell_solid_angles() * self._distances ** 2) / d2
+        if visibility is not None:
+            out *= np.asarray(visibility, dtype=np.float64)
+        return out
+
     def irradiance(self, points: np.ndarray, normals: np.ndarray, intensities: np.ndarray,
                    visibility: np.ndarray | None = None) -> np.ndarray:
         """(N,3) irradiance E(x) = sum_l E_l(x) at points (N,3) with unit normals (N,3).
@@ -317,13 +335,5 @@ class LightStage:
         ``visibility`` (N,L) bool/float, default all visible. Mostly for tests and checks; the
         renderer (``render/shading.py``) evaluates the same formula in chunks.
         """
-        points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-        normals = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
-        J = self.point_intensities(intensities)
-        to_light = self.positions[None] - points[:, None]
-        d2 = np.sum(to_light ** 2, axis=-1)
-        cos = np.clip(np.einsum("nlc,nc->nl", to_light, normals) / np.sqrt(d2), 0.0, None)
-        weight = cos / d2
-        if visibility is not None:
-            weight = weight * np.asarray(visibility, dtype=np.float64)
-        return np.einsum("nl,lc->nc", weight, J)
+        radiance = self.check_intensities(intensities) * self.rgb_gain
+        return self.transfer(points, normals, visibility) @ radiance

@@ -72,6 +72,7 @@ from egorelight_cli.io.meshes import write_ply
 from egorelight_cli.io.npz import write_npz
 from egorelight_cli.render.camera_response import CameraResponse, random_ego_response
 from egorelight_cli.render.envmaps import detailed_surroundings, envmap_set, write_envmap
+from egorelight_cli.render.lighting import light_intensities
 from egorelight_cli.render.lightstage import LightStage
 from egorelight_cli.structures.character import Character
 from egorelight_cli.synth import derived, groundtruth
@@ -108,7 +109,6 @@ from egorelight_cli.synth.sensors import (
     DomeBackdrop,
     FrameRenderer,
     Timer,
-    light_intensities,
 )
 from egorelight_cli.synth.sequences import SEQUENCES, SequencePlan, plan_sequence
 from egorelight_cli.synth.tracker import simulate_tracker

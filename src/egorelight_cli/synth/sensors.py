@@ -40,18 +40,6 @@ LED_RADIUS = np.radians(3.0)
 DOME_FILL = 0.03
 
 
-def light_intensities(lightstage: LightStage, entry: dict, envmaps: dict[str, np.ndarray]) -> np.ndarray:
-    """(L,3) lighting condition of a ``sequence.json`` light entry."""
-    pattern, scale = entry["pattern"], float(entry.get("scale", 1.0))
-    if pattern in ("flat", "flash"):
-        return lightstage.flat(scale)
-    if pattern == "dark":
-        return np.zeros((lightstage.num_lights, 3))
-    if pattern == "olat":
-        return lightstage.olat(int(entry["olat_index"]), scale)
-    return scale * lightstage.envmap_to_intensities(envmaps[entry["envmap"]], float(entry.get("yaw_deg", 0.0)))
-
-
 class DomeBackdrop:
     """What a camera near the dome centre sees around it: LED discs showing the light pattern."""
 
