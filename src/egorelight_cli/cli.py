@@ -370,6 +370,43 @@ def animate_command(ctx: click.Context, motion_path: Path, pointcloud_path: Path
                                    no_depth, export, out)
 
 
+# ------------------------------------------------------------------------------- geolift
+def _geolift_commands(ctx: click.Context):
+    from egorelight_cli.stages.geolift_commands import GeoliftCommands
+
+    return GeoliftCommands(_stage_run(ctx, "geolift"))
+
+
+@train_group.command("geolift")
+@click.option("--capture", required=True, type=click.Path(path_type=Path),
+              help="Capture (flat-lit studio frames, recon/ and normals/ of train.sequence).")
+@click.option("--meshes", "meshes_path", required=True, type=click.Path(path_type=Path),
+              help="Tracked meshes of that sequence (animate --no-depth with the student model).")
+@click.option("--character", default="default", show_default=True, help="Character artifact, .npz, .character or 'default'.")
+@click.option("--out", required=True, type=click.Path(path_type=Path), help="Model artifact directory.")
+@common_options
+@click.pass_context
+def train_geolift(ctx: click.Context, capture: Path, meshes_path: Path, character: str, out: Path) -> None:
+    """Fit GeoLiftingNet: coarse UV normals of frames t-2..t -> UV normals + flat-lit texture."""
+    _geolift_commands(ctx).train(capture, meshes_path, character, out)
+
+
+@cli.command("geolift")
+@click.option("--meshes", "meshes_path", required=True, type=click.Path(path_type=Path), help="Meshes artifact (animate).")
+@click.option("--model", "model_path", required=True, type=click.Path(path_type=Path), help="geolift model (train geolift).")
+@click.option("--character", default="default", show_default=True, help="Character artifact, .npz, .character or 'default'.")
+@click.option("--capture", type=click.Path(path_type=Path), default=None,
+              help="Capture: the sequence's lighting (rho, chi maps) and, when present, its ground truth.")
+@click.option("--seq", "--sequence", "seq", default="test", show_default=True, help="Sequence of the meshes.")
+@click.option("--out", required=True, type=click.Path(path_type=Path), help="uvmaps artifact directory.")
+@common_options
+@click.pass_context
+def geolift_command(ctx: click.Context, meshes_path: Path, model_path: Path, character: str, capture: Path | None,
+                    seq: str, out: Path) -> None:
+    """Tracked meshes -> per-frame UV normal map, flat-lit texture and lighting features (uvmaps)."""
+    _geolift_commands(ctx).predict(meshes_path, model_path, character, capture, seq, out)
+
+
 # ---------------------------------------------------------------------------------- calibrate
 @cli.command("calibrate")
 @click.option("--capture", "capture_path", required=True, type=click.Path(path_type=Path), help="Capture artifact.")

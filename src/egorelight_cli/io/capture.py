@@ -112,6 +112,22 @@ class SequenceInfo:
                                   f"(frames {lo}..{hi})", self.root / "sequence.json")
         return frame_ids
 
+    def flat_lit(self, frame_ids) -> np.ndarray:
+        """The frames of ``frame_ids`` lit ``flat`` (all of them when the sequence lists no lights)."""
+        frame_ids = np.asarray(frame_ids, dtype=np.int64).reshape(-1)
+        if not self.lights:
+            return frame_ids
+        pattern = {int(f): str(entry.get("pattern", "flat")) for f, entry in zip(self.frame_ids, self.lights)}
+        return np.array([f for f in frame_ids if pattern.get(int(f), "flat") == "flat"], np.int64)
+
+    def light_entry(self, frame_id: int) -> dict:
+        """The light entry of studio frame ``frame_id`` (an EgorelightError when it has none)."""
+        for f, entry in zip(self.frame_ids, self.lights):
+            if int(f) == int(frame_id):
+                return dict(entry)
+        raise EgorelightError(f"sequence {self.name!r} lists no lighting for frame {int(frame_id)}",
+                              self.root / "sequence.json")
+
     def ego_image_path(self, role: str, ego_frame_id: int) -> Path:
         return self.root / "ego" / role / frame_file(ego_frame_id, ".png")
 
@@ -237,6 +253,21 @@ class Capture:
         """``groundtruth/<sequence>/<name>`` when it exists (evaluation code only), else None."""
         path = self.root / "groundtruth" / sequence / name
         return path if path.is_file() else None
+
+
+def read_reconstructions(seq: SequenceInfo, frame_ids) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    """Frame id -> (vertices, faces) of the multi-view reconstructions of ``frame_ids`` that exist."""
+    from egorelight_cli.io.meshes import read_mesh
+
+    out = {}
+    for f in np.asarray(frame_ids, dtype=np.int64).reshape(-1):
+        path = seq.recon_path(int(f))
+        if path.is_file():
+            v, faces = read_mesh(path)
+            if not np.isfinite(v).all():
+                raise EgorelightError("reconstruction holds NaN or inf vertices", path)
+            out[int(f)] = (v, faces)
+    return out
 
 
 def open_capture(path: str | Path) -> tuple[Capture, "Artifact"]:  # noqa: F821

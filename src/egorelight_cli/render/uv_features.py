@@ -59,10 +59,15 @@ class TexelSurface:
 
     def to_map(self, values, fill: float = 0.0) -> np.ndarray:
         """Scatter per-texel values (N,...) back to a UV map (H,W,...)."""
-        values = np.asarray(values)
-        out = np.full(self.coverage.shape + values.shape[1:], fill, dtype=values.dtype)
-        out[self.coverage] = values
-        return out
+        return texel_map(self.coverage, values, fill)
+
+
+def texel_map(coverage: np.ndarray, values, fill: float = 0.0) -> np.ndarray:
+    """Per covered texel values (N,...) (row-major order) -> a UV map (H,W,...) filled elsewhere."""
+    values = np.asarray(values)
+    out = np.full(coverage.shape + values.shape[1:], fill, dtype=values.dtype)
+    out[coverage] = values
+    return out
 
 
 def texel_surface(uv_raster: UVRaster, vertices: np.ndarray, faces: np.ndarray) -> TexelSurface:

@@ -28,7 +28,7 @@ from egorelight_cli import console
 from egorelight_cli.artifacts import Artifact, ArtifactWriter
 from egorelight_cli.config import Config
 from egorelight_cli.errors import EgorelightError
-from egorelight_cli.io.capture import Capture, open_capture
+from egorelight_cli.io.capture import Capture, open_capture, read_reconstructions
 from egorelight_cli.io.mesh_sequence import MeshSequence, export_sequence, save_meshes
 from egorelight_cli.io.motion import Motion, load_motion
 from egorelight_cli.pipeline import StageRun
@@ -98,30 +98,6 @@ def load_animate_model(path: Path, character: Character, device) -> tuple[Animat
     return AnimationModel(character, net_settings, depth, net, device), artifact, extra
 
 
-def _flat_lit(seq, frame_ids: np.ndarray) -> np.ndarray:
-    """The frames of ``frame_ids`` lit flat (all of them when the sequence lists no lights)."""
-    lights = seq.lights
-    if not lights:
-        return frame_ids
-    pattern = {int(f): str(l.get("pattern", "flat")) for f, l in zip(seq.frame_ids, lights)}
-    return np.array([f for f in frame_ids if pattern.get(int(f), "flat") == "flat"], np.int64)
-
-
-def read_reconstructions(seq, frame_ids: np.ndarray) -> dict[int, tuple[np.ndarray, np.ndarray]]:
-    """Frame id -> (vertices, faces) of the multi-view reconstructions that exist."""
-    from egorelight_cli.io.meshes import read_mesh
-
-    out = {}
-    for f in frame_ids:
-        path = seq.recon_path(int(f))
-        if path.is_file():
-            v, faces = read_mesh(path)
-            if not np.isfinite(v).all():
-                raise EgorelightError("reconstruction holds NaN or inf vertices", path)
-            out[int(f)] = (v, faces)
-    return out
-
-
 @dataclass(frozen=True)
 class AnimateCommands:
     """``animate`` and ``train animate`` over one :class:`StageRun` (the global options)."""
@@ -146,7 +122,7 @@ class AnimateCommands:
         cfg = self.run.config()
         frames = np.intersect1d(motion.frame_ids, seq.content_frame_ids)
         if bool(cfg["train"]["flat_lit_only"]):
-            frames = _flat_lit(seq, frames)
+            frames = seq.flat_lit(frames)
         recon = read_reconstructions(seq, frames)
         if not recon:
             raise EgorelightError(f"no frame of the motion ({motion.frame_ids.min()}..{motion.frame_ids.max()}) has a "

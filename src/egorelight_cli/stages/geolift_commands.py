@@ -1,0 +1,181 @@
+"""The ``egorelight train geolift`` and ``egorelight geolift`` commands: load inputs, call
+:mod:`egorelight_cli.stages.geolift`, write artifacts.
+
+``train geolift`` (capture + tracked meshes of its relit training sequence + character) writes a
+model artifact: ``model.pt`` (GeoLiftingNet, and in ``extra`` the UV resolution, the mean-texture
+baseline, the flat lighting scale and the cameras and frames used), ``curve.json``/``curve.png``.
+Its metrics hold the errors on the training views and on held-out flat-lit frames, each next to
+the baselines (coarse normals, mean texture).
+
+``geolift`` (any meshes artifact + model + character) writes a ``uvmaps`` artifact:
+``maps/<frame>.exr`` with layers ``normal`` (X,Y,Z: unit world-space normals), ``albedo``
+(R,G,B: flat-lit texture, linear radiance), ``coverage`` (Y: 1 on texels of the layout) and, with
+``--capture`` and a sequence whose frames list their lighting, ``shadow`` (Y: rho) and
+``diffuse`` (R,G,B: chi, the irradiance) from ``render/uv_features.py``; ``preview.png``; and
+with ground truth in the capture, the normal and texture errors next to the baselines.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from egorelight_cli import console
+from egorelight_cli.artifacts import Artifact, ArtifactWriter, open_artifact
+from egorelight_cli.config import Config
+from egorelight_cli.errors import EgorelightError
+from egorelight_cli.io.capture import Capture, frame_file, open_capture
+from egorelight_cli.io.mesh_sequence import MeshSequence, load_meshes
+from egorelight_cli.nn.geolift_net import GeoLiftNet
+from egorelight_cli.pipeline import StageRun
+from egorelight_cli.render.raster import rasterize_uv
+from egorelight_cli.stages import geolift as gl
+from egorelight_cli.structures.character import Character
+
+PREVIEW_PNG = "preview.png"
+MAPS_DIR = "maps"
+
+
+def _load_meshes(path: Path, character: Character) -> tuple[MeshSequence, Artifact | None]:
+    meshes, artifact = load_meshes(path)
+    if meshes.vertices.shape[1] != len(character.vertices):
+        raise EgorelightError(f"meshes have {meshes.vertices.shape[1]} vertices, the character "
+                              f"{len(character.vertices)}: they were not made with this character", path)
+    return meshes, artifact
+
+
+def _studio_cameras(capture: Capture, sequence) -> list[str]:
+    held_out = set(sequence.doc.get("held_out_cameras", []))
+    names = [n for n in sequence.studio_cameras if capture.studio_camera_roles.get(n, "studio") == "studio"]
+    return [n for n in names if n not in held_out]
+
+
+def _flat_scale(sequence, frames: np.ndarray) -> float:
+    scales = {float(sequence.light_entry(int(f)).get("scale", 1.0)) for f in frames} if sequence.lights else {1.0}
+    return float(np.median(sorted(scales)))
+
+
+def load_geolift_model(path: Path) -> tuple[GeoLiftNet, dict, Artifact]:
+    """(network, extras, artifact) of a ``train geolift`` model."""
+    from egorelight_cli.io.model import read_model
+
+    artifact = open_artifact(path, kind="model")
+    if artifact.single_file:
+        raise EgorelightError("a geolift model is a directory artifact", path)
+    payload = read_model(artifact.root, stage=gl.MODEL_STAGE)
+    try:
+        model = GeoLiftNet(int(payload.architecture["base_channels"]), int(payload.architecture["levels"]))
+        model.load_state_dict(payload.state_dict)
+    except (KeyError, RuntimeError) as exc:
+        raise EgorelightError(f"geolift model does not match the network ({type(exc).__name__}: "
+                              f"{str(exc).splitlines()[0]})", path) from None
+    return model.eval(), payload.extra, artifact
+
+
+@dataclass(frozen=True)
+class GeoliftCommands:
+    """``geolift`` and ``train geolift`` over one :class:`StageRun`."""
+
+    run: StageRun
+
+    # ------------------------------------------------------------------------------- train
+    def train(self, capture_path: Path, meshes_path: Path, character_spec: str, out: Path) -> Path:
+        from egorelight_cli.stages.character_commands import load_character
+        from egorelight_cli.stages.ik_commands import character_sources
+
+        cfg = self.run.config()
+        character, character_artifact = load_character(character_spec)
+        capture, capture_artifact = open_capture(capture_path)
+        sequence = capture.sequence(str(cfg.train.sequence))
+        sequence.require_stream("recon")
+        meshes, meshes_artifact = _load_meshes(meshes_path, character)
+        frames = sequence.flat_lit(np.intersect1d(meshes.frame_ids, sequence.content_frame_ids))
+        if len(frames) < 2:
+            raise EgorelightError(f"the meshes cover {len(frames)} flat-lit frame(s) of sequence {sequence.name!r}; "
+                                  "training and validation need at least 2", meshes_path)
+        held = max(1, int(round(float(cfg.train.validation_fraction) * len(frames))))
+        train_frames, val_frames = frames[:-held], frames[-held:]
+        cameras = _studio_cameras(capture, sequence)
+        inputs = [a for a in (capture_artifact, character_artifact, meshes_artifact) if a is not None]
+        sources = character_sources(character_spec, character_artifact) + ([] if meshes_artifact else [meshes_path])
+        self.run.compute_device()  # CPU stage: --device cuda is refused, not silently ignored
+        checkpoint = Path(out).parent / f".{Path(out).name}.checkpoint.pt"
+
+        def write(writer: ArtifactWriter, cfg: Config) -> None:
+            from egorelight_cli.io.model import ModelPayload, write_model
+
+            if writer.single_file:
+                raise EgorelightError("a geolift model is a directory artifact: give --out a directory name", out)
+            started = time.perf_counter()
+            raster = rasterize_uv(character.face_uvs, int(cfg.net.uv_resolution))
+            normal_maps = gl.coarse_normal_maps(raster, meshes.vertices, character.faces)
+            train_views = gl.build_views(capture, sequence, meshes, character.faces, character.face_uvs,
+                                         train_frames, cameras)
+            val_views = gl.build_views(capture, sequence, meshes, character.faces, character.face_uvs,
+                                       val_frames, cameras)
+            texture = gl.mean_texture(train_views, raster.resolution)
+            writer.timing["views_s"] = round(time.perf_counter() - started, 3)
+            console.info(f"train geolift: {len(train_views)} views ({len(train_frames)} frames x {len(cameras)} "
+                         f"cameras), {len(val_views)} held-out views")
+            started = time.perf_counter()
+            model, curve = gl.train_geolift(train_views, normal_maps, gl.TrainSettings.from_config(cfg), cfg.net,
+                                            texture.reshape(3, -1).mean(axis=1), checkpoint)
+            writer.timing["train_s"] = round(time.perf_counter() - started, 3)
+            writer.metrics.update(gl.fit_report(model, train_views, normal_maps, texture))
+            validation = gl.fit_report(model, val_views, normal_maps, texture)
+            writer.metrics.update({k.replace("train_", "val_", 1): v for k, v in validation.items()})
+            extra = {"uv_resolution": int(cfg.net.uv_resolution), "mean_texture": torch.from_numpy(texture),
+                     "flat_scale": _flat_scale(sequence, frames), "sequence": sequence.name, "cameras": cameras,
+                     "train_frames": train_frames.tolist(), "val_frames": val_frames.tolist(),
+                     "detail_loss": "neighbour-difference L1 (substitute: no VGG weights)"}
+            write_model(writer.workdir, ModelPayload(gl.MODEL_STAGE, model.architecture(), model.state_dict(), extra,
+                                                     curve), curve_title="geolift training loss")
+            writer.metrics.update({
+                "training_views": len(train_views), "validation_views": len(val_views),
+                "loss_first": curve[0]["loss"], "loss_last": curve[-1]["loss"],
+                "detail_loss": extra["detail_loss"],
+            })
+            writer.units.update({"rgb_l1": "linear radiance", "normal_deg": "degrees"})
+
+        result = self.run.produce(out, "model", write, inputs=inputs, source_files=sources)
+        checkpoint.unlink(missing_ok=True)
+        return result
+
+    # ------------------------------------------------------------------------------ predict
+    def predict(self, meshes_path: Path, model_path: Path, character_spec: str, capture_path: Path | None,
+                seq: str, out: Path) -> Path:
+        from egorelight_cli.stages.character_commands import load_character
+        from egorelight_cli.stages.ik_commands import character_sources
+
+        character, character_artifact = load_character(character_spec)
+        meshes, meshes_artifact = _load_meshes(meshes_path, character)
+        model, extra, model_artifact = load_geolift_model(model_path)
+        capture = sequence = capture_artifact = None
+        if capture_path is not None:
+            capture, capture_artifact = open_capture(capture_path)
+            sequence = capture.sequence(seq)
+        inputs = [a for a in (character_artifact, meshes_artifact, model_artifact, capture_artifact) if a is not None]
+        sources = character_sources(character_spec, character_artifact) + ([] if meshes_artifact else [meshes_path])
+        self.run.compute_device()
+
+        def write(writer: ArtifactWriter, cfg: Config) -> None:
+            from egorelight_cli.stages.geolift_maps import write_uvmaps
+
+            if writer.single_file:
+                raise EgorelightError("a uvmaps artifact is a directory (it holds EXR maps): give --out a directory",
+                                      out)
+            exposure = 1.0
+            if capture_artifact is not None:
+                exposure = float(capture_artifact.manifest.get("config", {}).get("studio", {}).get("exposure", 1.0))
+            write_uvmaps(writer, cfg, model, extra, character, meshes, capture, sequence, exposure)
+
+        return self.run.produce(out, "uvmaps", write, inputs=inputs, source_files=sources)
+
+
+def map_path(frame_id: int) -> str:
+    """Relative path of a frame's UV maps in a uvmaps artifact."""
+    return f"{MAPS_DIR}/{frame_file(frame_id, '.exr')}"

@@ -1,0 +1,131 @@
+"""Writing a ``uvmaps`` artifact: GeoLift's maps per frame, lighting features, scores and preview.
+
+Called by ``egorelight geolift`` (:mod:`egorelight_cli.stages.geolift_commands`); the layout of
+the artifact is described there.
+"""
+
+from __future__ import annotations
+
+import time
+
+import cv2
+import numpy as np
+
+from egorelight_cli import console
+from egorelight_cli.artifacts import ArtifactWriter
+from egorelight_cli.config import Config
+from egorelight_cli.io.capture import Capture, SequenceInfo
+from egorelight_cli.io.exr import write_exr_layers
+from egorelight_cli.io.images import tonemap, write_image
+from egorelight_cli.io.mesh_sequence import MeshSequence
+from egorelight_cli.nn.geolift_net import GeoLiftNet
+from egorelight_cli.render.lighting import CaptureEnvmaps, light_intensities
+from egorelight_cli.render.lightstage import LightStage
+from egorelight_cli.render.raster import rasterize_uv
+from egorelight_cli.render.uv_features import (
+    irradiance_map,
+    light_transfer,
+    shadow_map,
+    texel_map,
+    texel_surface,
+    texel_visibility,
+)
+from egorelight_cli.stages import geolift as gl
+from egorelight_cli.stages.geolift_eval import GeoLiftScores, GeoLiftTruth
+from egorelight_cli.structures.character import Character
+
+PREVIEW_TILE = 128  # pixels per UV map in the preview
+
+
+def _lighting_features(vertices: np.ndarray, faces: np.ndarray, raster, normals: np.ndarray, lightstage: LightStage,
+                       intensities: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(rho (H,W,1), chi (H,W,3)) with the lifted normals (3,H,W) and the tracked mesh's shadows."""
+    surface = texel_surface(raster, vertices, faces)
+    visibility = texel_visibility(vertices, faces, surface, lightstage)
+    lifted = np.moveaxis(normals, 0, -1)[raster.coverage].astype(np.float64)
+    lifted /= np.maximum(np.linalg.norm(lifted, axis=1, keepdims=True), 1e-12)
+    transfer = light_transfer(surface.points, lifted, lightstage, visibility)
+    rho = shadow_map(transfer).numpy()[:, None]
+    chi = irradiance_map(transfer, lightstage, intensities).numpy()
+    return surface.to_map(rho.astype(np.float32)), surface.to_map(chi.astype(np.float32))
+
+
+def _normal_image(maps: np.ndarray, coverage: np.ndarray) -> np.ndarray:
+    """(3,H,W) unit normals -> (T,T,3) uint8 (0.5 n + 0.5), grey off the layout."""
+    image = np.where(coverage[..., None], 0.5 * np.moveaxis(maps, 0, -1) + 0.5, 0.5)
+    image = cv2.resize(image.astype(np.float32), (PREVIEW_TILE, PREVIEW_TILE), interpolation=cv2.INTER_NEAREST)
+    return np.clip(image * 255 + 0.5, 0, 255).astype(np.uint8)
+
+
+def _texture_image(maps: np.ndarray, coverage: np.ndarray) -> np.ndarray:
+    image = tonemap(np.moveaxis(maps, 0, -1), mask=coverage)
+    return cv2.resize(image, (PREVIEW_TILE, PREVIEW_TILE), interpolation=cv2.INTER_NEAREST)
+
+
+def write_uvmaps(writer: ArtifactWriter, cfg: Config, model: GeoLiftNet, extra: dict, character: Character,
+                 meshes: MeshSequence, capture: Capture | None, sequence: SequenceInfo | None,
+                 exposure: float) -> None:
+    """Run GeoLift on every mesh frame and write maps, features, metrics and the preview."""
+    from egorelight_cli.stages.geolift_commands import PREVIEW_PNG, map_path
+
+    raster = rasterize_uv(character.face_uvs, int(extra["uv_resolution"]))
+    coverage = raster.coverage
+    normal_maps = gl.coarse_normal_maps(raster, meshes.vertices, character.faces)
+    mean_texture = extra["mean_texture"].numpy()
+    lit = capture is not None and sequence is not None and bool(cfg.lighting.features) and bool(sequence.lights)
+    lightstage = LightStage.from_json(capture.lights_path()) if lit else None
+    envmaps = CaptureEnvmaps(capture.root) if lit else None
+    lit_frames = set(int(f) for f in sequence.frame_ids) if lit else set()
+    truth = None
+    if capture is not None and sequence is not None:
+        truth = GeoLiftTruth(capture, sequence.name, raster, character.faces, len(character.vertices),
+                             float(extra.get("flat_scale", 1.0)), exposure)
+    scores = GeoLiftScores()
+    T = meshes.num_frames
+    preview_at = set(np.linspace(0, T - 1, max(min(int(cfg.preview.frames), T), 1)).round().astype(int).tolist())
+    rows, timing = [], {"network_s": 0.0, "features_s": 0.0}
+    featured = 0
+    for t in console.progress(range(T), total=T, desc="geolift"):
+        f = int(meshes.frame_ids[t])
+        started = time.perf_counter()
+        normals, texture = gl.predict_maps(model, normal_maps, t)
+        timing["network_s"] += time.perf_counter() - started
+        layers = {"normal": np.moveaxis(normals, 0, -1) * coverage[..., None],
+                  "albedo": np.moveaxis(texture, 0, -1) * coverage[..., None],
+                  "coverage": coverage.astype(np.float32)}
+        if f in lit_frames:
+            started = time.perf_counter()
+            intensities = light_intensities(lightstage, sequence.light_entry(f), envmaps)
+            layers["shadow"], layers["diffuse"] = _lighting_features(meshes.vertices[t], character.faces, raster,
+                                                                     normals, lightstage, intensities)
+            timing["features_s"] += time.perf_counter() - started
+            featured += 1
+        write_exr_layers(writer.path(map_path(f)), layers)
+        truth_normals = None
+        if truth is not None and truth.has(f):
+            truth_normals, truth_texture = truth.frame(f)
+            scores.add(coverage, normals, normal_maps[t], texture, mean_texture, truth_normals, truth_texture)
+        if t in preview_at:
+            tiles = [_normal_image(normal_maps[t], coverage), _normal_image(normals, coverage),
+                     _texture_image(texture, coverage)]
+            if truth_normals is not None:
+                tiles.append(_normal_image(np.moveaxis(texel_map(coverage, truth_normals), -1, 0), coverage))
+            rows.append(np.concatenate(tiles, axis=1))
+    if rows:
+        width = max(r.shape[1] for r in rows)
+        write_image(writer.path(PREVIEW_PNG),
+                    np.concatenate([np.pad(r, ((0, 0), (0, width - r.shape[1]), (0, 0)), constant_values=255)
+                                    for r in rows], axis=0))
+    writer.metrics.update({"frames": T, "sequence": sequence.name if sequence is not None else None,
+                           "uv_resolution": int(extra["uv_resolution"]), "frames_with_lighting_features": featured,
+                           "preview_columns": "coarse normals | GeoLift normals | flat-lit texture | true normals"})
+    if truth is not None and truth.available:
+        writer.metrics.update(scores.metrics())
+    elif truth is not None:
+        writer.metrics["groundtruth"] = truth.reason
+    writer.timing.update({"network_ms_per_frame": round(1000 * timing["network_s"] / max(T, 1), 2),
+                          "features_ms_per_frame": round(1000 * timing["features_s"] / max(featured, 1), 2)})
+    writer.units.update({"normal": "unit vector, world frame", "albedo": "linear radiance (flat-lit)",
+                         "shadow": "rho = sum_l G_l / pi", "diffuse": "chi, irradiance (lights' units)",
+                         "normal_deg": "degrees", "texture_l1": "linear radiance"})
+
