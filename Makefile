@@ -133,11 +133,32 @@ $(SUBJECT)/meshes/%/manifest.json: $(SUBJECT)/motion/%/manifest.json $(SUBJECT)/
 		--model $(SUBJECT)/models/animate --character $(SUBJECT)/character --capture $(SUBJECT)/capture \
 		--seq $* --calibration $(SUBJECT)/calibration --out $(SUBJECT)/meshes/$*
 
+# ---------------------------------------------------------------- geolift (Sec. geometry lifting)
+# meshes_student/<seq>: the depth-agnostic student driven by the studio's mocap (relight_train:
+# the appearance stages' training meshes); GeoLift trains on the flat-lit frames of GEOLIFT_TRAIN_SEQ
+# and runs on any tracked meshes/<seq>, with the sequence's lighting features (rho, chi).
+GEOLIFT_MODEL := $(SUBJECT)/models/geolift/manifest.json
+GEOLIFT_TRAIN_SEQ ?= relight_train
+
+$(SUBJECT)/meshes_student/%/manifest.json: $(SUBJECT)/motion_mocap/%/manifest.json $(ANIMATE_STUDENT) $(CHARACTER) \
+		$(CAPTURE)
+	$(EGO) $(EGOFLAGS) animate --no-depth --motion $(SUBJECT)/motion_mocap/$* --model $(SUBJECT)/models/animate_student \
+		--character $(SUBJECT)/character --capture $(SUBJECT)/capture --seq $* --out $(SUBJECT)/meshes_student/$*
+
+$(GEOLIFT_MODEL): $(CAPTURE) $(CHARACTER) $(SUBJECT)/meshes_student/$(GEOLIFT_TRAIN_SEQ)/manifest.json
+	$(EGO) $(EGOFLAGS) train geolift --set train.sequence=$(GEOLIFT_TRAIN_SEQ) --capture $(SUBJECT)/capture \
+		--meshes $(SUBJECT)/meshes_student/$(GEOLIFT_TRAIN_SEQ) --character $(SUBJECT)/character \
+		--out $(SUBJECT)/models/geolift
+
+$(SUBJECT)/uvmaps/%/manifest.json: $(SUBJECT)/meshes/%/manifest.json $(GEOLIFT_MODEL) $(CHARACTER) $(CAPTURE)
+	$(EGO) $(EGOFLAGS) geolift --meshes $(SUBJECT)/meshes/$* --model $(SUBJECT)/models/geolift \
+		--character $(SUBJECT)/character --capture $(SUBJECT)/capture --seq $* --out $(SUBJECT)/uvmaps/$*
+
 # keep intermediate per-sequence artifacts (make would delete pattern-rule intermediates)
 .SECONDARY:
 
 subject: $(CAPTURE) $(CHARACTER) $(PREVIEWS)/character.png $(CALIBRATION) \
-	$(SUBJECT)/meshes/$(SEQ)/manifest.json $(ANIMATE_STUDENT)
+	$(SUBJECT)/meshes/$(SEQ)/manifest.json $(ANIMATE_STUDENT) $(SUBJECT)/uvmaps/$(SEQ)/manifest.json
 
 demo: subject
 	@echo
