@@ -126,15 +126,21 @@ def irradiance_map(transfer: torch.Tensor, lightstage: LightStage, intensities) 
 
 def _half_vector_cosines(points: np.ndarray, normals: np.ndarray, light_positions: np.ndarray,
                          camera_centre: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``n.w`` (N,K), ``n.v`` (N,1) and ``n.h`` (N,K) for lights (N,K,3) or (K,3) seen from one camera."""
-    to_light = light_positions - points[:, None]
-    w = to_light / np.linalg.norm(to_light, axis=-1, keepdims=True)
+    """``n.w`` (N,L), ``n.v`` (N,1) and ``n.h`` (N,L) for lights (L,3) seen from one camera centre.
+
+    Written with matrix products only (no (N,L,3) arrays): with ``d = p_l - x``,
+    ``n.w = (n.p_l - n.x) / |d|``, ``v.w`` likewise, ``|d|^2 = |p_l|^2 - 2 x.p_l + |x|^2`` and
+    ``n.h = (n.w + n.v) / sqrt(2 + 2 v.w)``.
+    """
     v = camera_centre[None] - points
     v /= np.linalg.norm(v, axis=-1, keepdims=True)
-    h = w + v[:, None]
-    h /= np.maximum(np.linalg.norm(h, axis=-1, keepdims=True), 1e-12)
-    n = normals[:, None]
-    return np.sum(n * w, -1), np.sum(normals * v, -1, keepdims=True), np.sum(n * h, -1)
+    distance = np.sqrt(np.maximum(np.sum(light_positions ** 2, axis=1)[None] - 2.0 * points @ light_positions.T
+                                  + np.sum(points ** 2, axis=1, keepdims=True), 1e-24))
+    cos_w = (normals @ light_positions.T - np.sum(normals * points, axis=1, keepdims=True)) / distance
+    v_dot_w = (v @ light_positions.T - np.sum(v * points, axis=1, keepdims=True)) / distance
+    cos_v = np.sum(normals * v, axis=1, keepdims=True)
+    cos_h = (cos_w + cos_v) / np.sqrt(np.maximum(2.0 + 2.0 * v_dot_w, 1e-24))
+    return cos_w, cos_v, cos_h
 
 
 @torch.no_grad()
@@ -170,7 +176,8 @@ def ray_encoding(points: np.ndarray, normals: np.ndarray, transfer: torch.Tensor
     """
     idx = index.numpy()
     centre = np.asarray(camera_centre, dtype=np.float64).reshape(3)
-    cos_w, cos_v, cos_h = _half_vector_cosines(points, normals, lightstage.positions[idx], centre)
+    cos_w, cos_v, cos_h = _half_vector_cosines(points, normals, lightstage.positions, centre)
+    cos_w, cos_h = np.take_along_axis(cos_w, idx, axis=1), np.take_along_axis(cos_h, idx, axis=1)
     angles = torch.from_numpy(np.stack([cos_w, np.broadcast_to(cos_v, cos_w.shape), cos_h], -1))
     radiance = light_radiance(lightstage, intensities)
     contribution = torch.gather(transfer, 1, index).to(radiance.dtype)[..., None] * radiance[index]
