@@ -104,6 +104,19 @@ def sha256_file(path: str | Path, chunk: int = 1 << 20) -> str:
     return "sha256:" + digest.hexdigest()
 
 
+_DIGEST_CACHE: dict[tuple[str, int, int], str] = {}
+
+
+def cached_sha256_file(path: str | Path) -> str:
+    """:func:`sha256_file`, remembered for this process by (real path, size, mtime_ns): a file
+    verified once is not hashed again unless it changed on disk."""
+    stat = os.stat(path)
+    key = (os.path.realpath(path), stat.st_size, stat.st_mtime_ns)
+    if key not in _DIGEST_CACHE:
+        _DIGEST_CACHE[key] = sha256_file(path)
+    return _DIGEST_CACHE[key]
+
+
 def sha256_bytes(data: bytes) -> str:
     return "sha256:" + hashlib.sha256(data).hexdigest()
 
@@ -160,24 +173,39 @@ class Artifact:
         return self.manifest.get("metrics", {})
 
     def output(self, name: str) -> Path:
-        """Path of the named payload; error if the manifest does not list it or it is gone."""
+        """Path of the named payload; error if the manifest does not list it, or it is missing
+        or no longer matches its digest."""
         for entry in self.manifest["outputs"]:
             if entry["name"] == name:
-                path = self.root / entry["path"]
-                if not path.exists():
-                    raise EgorelightError(f"artifact lists {name} but the file is missing", path)
-                return path
+                return self._checked(entry)
         names = ", ".join(e["name"] for e in self.manifest["outputs"][:10])
         raise EgorelightError(f"artifact has no output {name!r} (has: {names})", self.manifest_path)
 
-    def verify(self) -> None:
-        """Recompute every output digest; error on the first mismatch."""
+    def payload_problems(self) -> list[tuple[str, Path]]:
+        """``("missing" | "modified", path)`` for every listed payload that is gone or whose
+        sha256 no longer matches the manifest (digests cached per process)."""
+        problems = []
         for entry in self.manifest["outputs"]:
             path = self.root / entry["path"]
             if not path.is_file():
-                raise EgorelightError("artifact output is missing", path)
-            if sha256_file(path) != entry["digest"]:
-                raise EgorelightError("artifact output does not match its manifest digest (modified or half-written)", path)
+                problems.append(("missing", path))
+            elif cached_sha256_file(path) != entry["digest"]:
+                problems.append(("modified", path))
+        return problems
+
+    def verify(self) -> None:
+        """Check every payload against its manifest digest; error naming the first bad one."""
+        for entry in self.manifest["outputs"]:
+            self._checked(entry)
+
+    def _checked(self, entry: dict) -> Path:
+        path = self.root / entry["path"]
+        if not path.is_file():
+            raise EgorelightError(f"{self.kind} artifact payload is missing", path)
+        if cached_sha256_file(path) != entry["digest"]:
+            raise EgorelightError(f"{self.kind} artifact payload does not match its manifest digest (modified or "
+                                  "half-written)", path)
+        return path
 
     def as_input(self, relative_to: str | Path | None = None) -> dict:
         """The manifest ``inputs`` entry for this artifact; ``path`` is relative to
@@ -198,14 +226,14 @@ def manifest_path_for(path: str | Path) -> tuple[Path, bool]:
     return path.with_name(path.name + SIDECAR_SUFFIX), True
 
 
-def open_artifact(path: str | Path, kind: str | None = None, verify: bool | None = None) -> Artifact:
+def open_artifact(path: str | Path, kind: str | None = None, verify: bool = True) -> Artifact:
     """Open a finished artifact and check its kind and version.
 
     Args:
         path: the artifact directory, its ``manifest.json``, a single payload file or its sidecar.
         kind: expected kind (short name, ``motion``); None accepts any known kind.
-        verify: recompute output digests (default: only for single-file artifacts, where a
-            crash between the payload and sidecar renames could otherwise go unnoticed).
+        verify: check every payload's sha256 against the manifest (default; digests are cached
+            per process). ``False`` only reads the manifest (``inspect`` reports problems itself).
     """
     path = Path(path)
     if not path.exists():
@@ -219,6 +247,8 @@ def open_artifact(path: str | Path, kind: str | None = None, verify: bool | None
         manifest = json.loads(raw)
     except json.JSONDecodeError as exc:
         raise EgorelightError(f"manifest is not valid JSON ({exc.msg} at line {exc.lineno})", manifest_path) from None
+    except ValueError as exc:  # not UTF-8 text
+        raise EgorelightError(f"manifest is not UTF-8 JSON text ({exc})", manifest_path) from None
     if not isinstance(manifest, dict) or not str(manifest.get("kind", "")).startswith(KIND_PREFIX):
         raise EgorelightError("manifest has no egorelight kind", manifest_path)
     found = manifest["kind"].removeprefix(KIND_PREFIX)
@@ -233,7 +263,7 @@ def open_artifact(path: str | Path, kind: str | None = None, verify: bool | None
             f"this tool ({__version__}) reads version {known[found]}", path)
     validate_manifest(manifest, manifest_path)
     artifact = Artifact(manifest_path=manifest_path, manifest=manifest, digest=sha256_bytes(raw), single_file=single_file)
-    if verify or (verify is None and single_file):
+    if verify:
         artifact.verify()
     return artifact
 
@@ -320,15 +350,16 @@ def _array_entry(path: Path) -> dict[str, Any]:
 
 
 def is_up_to_date(out: str | Path, key: str, kind: str) -> bool:
-    """True when ``out`` is a finished artifact of ``kind`` made with cache key ``key``."""
+    """True when ``out`` is a finished artifact of ``kind`` made with cache key ``key`` whose
+    payloads are all present and intact."""
     manifest_path, _ = manifest_path_for(out)
     if not manifest_path.is_file():
         return False
     try:
-        artifact = open_artifact(out, kind=kind)
+        artifact = open_artifact(out, kind=kind, verify=False)
     except EgorelightError:
         return False
-    return artifact.manifest.get("cache_key") == key
+    return artifact.manifest.get("cache_key") == key and not artifact.payload_problems()
 
 
 class ArtifactWriter:

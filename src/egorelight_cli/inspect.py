@@ -6,7 +6,6 @@ artifact, an npz, an EXR or a PNG/JPEG; :func:`format_description` renders it fo
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any
 
@@ -16,7 +15,7 @@ from egorelight_cli.artifacts import MANIFEST_NAME, manifest_path_for, open_arti
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.io.exr import read_exr
 from egorelight_cli.io.images import read_image
-from egorelight_cli.io.npz import META_KEY
+from egorelight_cli.io.npz import META_KEY, parse_meta
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 MAX_CHAIN_DEPTH = 12
@@ -46,9 +45,9 @@ def describe_npz(path: Path) -> dict[str, Any]:
     meta = None
     if META_KEY in arrays:
         try:
-            meta = json.loads(str(arrays.pop(META_KEY)))
-        except json.JSONDecodeError:
-            meta = {"error": "__meta__ is not valid JSON"}
+            meta = parse_meta(arrays.pop(META_KEY), path)
+        except EgorelightError:
+            meta = {"error": "__meta__ is not a JSON object"}
     out: dict[str, Any] = {"type": "npz", "path": str(path), "meta": meta,
                            "arrays": {n: array_stats(a) for n, a in arrays.items()}}
     if meta:
@@ -124,6 +123,7 @@ def describe(path: str | Path) -> dict[str, Any]:
         "metrics": m.get("metrics", {}), "timing": m.get("timing", {}), "units": m.get("units", {}),
         "outputs": [{"name": o["name"], **({"arrays": o["arrays"]} if "arrays" in o else {})} for o in m["outputs"]],
         "inputs": input_chain(m, artifact.root),
+        "payload_problems": [{"problem": problem, "path": str(p)} for problem, p in artifact.payload_problems()],
     }
     if artifact.single_file:
         out["payload"] = describe_payload(artifact.path)
@@ -165,6 +165,10 @@ def format_description(info: dict[str, Any]) -> str:
                 lines.append(f"      {name}: {tuple(arr['shape'])} {arr['dtype']}")
         if len(info["outputs"]) > 40:
             lines.append(f"    ... and {len(info['outputs']) - 40} more")
+        problems = info["payload_problems"]
+        lines.append(f"  payloads: {len(problems)} of {len(info['outputs'])} missing or modified" if problems
+                     else f"  payloads: all {len(info['outputs'])} intact (sha256 matches the manifest)")
+        lines += [f"    {p['problem'].upper()}: {p['path']}" for p in problems]
         if info["metrics"]:
             lines.append("  metrics:")
             lines += [f"    {k}: {v}" for k, v in info["metrics"].items()]

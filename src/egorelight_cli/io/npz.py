@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import io
 import json
+import tokenize
 import zipfile
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +19,11 @@ import numpy as np
 from egorelight_cli.errors import EgorelightError
 
 META_KEY = "__meta__"
+# what numpy/zipfile raise on a truncated or bit-flipped npz: corrupt deflate data (zlib.error), an
+# unknown zip version or compression method (NotImplementedError), a garbled .npy header (the
+# tokenizer and literal_eval errors), an absurd shape (MemoryError, OverflowError)
+CORRUPT_NPZ_ERRORS = (zipfile.BadZipFile, zlib.error, ValueError, OSError, EOFError, KeyError, NotImplementedError,
+                      SyntaxError, tokenize.TokenError, MemoryError, OverflowError)
 
 
 def require_arrays(arrays: dict[str, np.ndarray], names, what: str, path: str | Path | None = None) -> None:
@@ -72,14 +79,11 @@ def read_npz(path: str | Path, check_finite: bool = True, allow_inf: tuple[str, 
     try:
         with np.load(path, allow_pickle=False) as data:
             arrays = {name: data[name] for name in data.files}
-    except (zipfile.BadZipFile, ValueError, OSError, EOFError, KeyError) as exc:
+    except CORRUPT_NPZ_ERRORS as exc:
         raise EgorelightError(f"corrupt npz ({type(exc).__name__}: {exc})", path) from None
     if META_KEY not in arrays:
         raise EgorelightError("npz has no __meta__ entry (not written by egorelight)", path)
-    try:
-        meta = json.loads(str(arrays.pop(META_KEY)))
-    except json.JSONDecodeError:
-        raise EgorelightError("npz __meta__ entry is not valid JSON", path) from None
+    meta = parse_meta(arrays.pop(META_KEY), path)
     if check_finite:
         check_arrays_finite(arrays, path, allow_inf)
     return arrays, meta
@@ -124,9 +128,21 @@ def read_npz_meta(path: str | Path) -> dict:
         with np.load(path, allow_pickle=False) as data:
             if META_KEY not in data.files:
                 raise EgorelightError("npz has no __meta__ entry (not written by egorelight)", path)
-            return json.loads(str(data[META_KEY]))
-    except (zipfile.BadZipFile, ValueError, OSError, EOFError) as exc:
+            entry = data[META_KEY]
+    except CORRUPT_NPZ_ERRORS as exc:
         raise EgorelightError(f"corrupt npz ({type(exc).__name__}: {exc})", path) from None
+    return parse_meta(entry, path)
+
+
+def parse_meta(entry: np.ndarray, path: str | Path | None = None) -> dict:
+    """The ``__meta__`` entry as a dict: a JSON object in a 0-d string array, else an error."""
+    try:
+        meta = json.loads(str(entry)) if entry.dtype.kind == "U" and entry.ndim == 0 else None
+    except ValueError:
+        meta = None
+    if not isinstance(meta, dict):
+        raise EgorelightError("npz __meta__ entry is not a JSON object", path)
+    return meta
 
 
 def check_arrays_finite(arrays: dict[str, np.ndarray], path: str | Path | None = None,
