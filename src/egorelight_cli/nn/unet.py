@@ -61,18 +61,29 @@ class UNet(nn.Module):
             x = F.pad(x, (0, pad_w, 0, pad_h), mode="replicate")
         return x, (H, W)
 
-    def decoder_features(self, x: torch.Tensor) -> list[torch.Tensor]:
+    def decoder_features(self, x: torch.Tensor, hooks: dict | None = None) -> list[torch.Tensor]:
         """Decoder feature maps from coarsest to finest; the last is at the input resolution
-        (after cropping the padding): a list of ``levels + 1`` tensors (B, widths[l], H/2^l, W/2^l)."""
+        (after cropping the padding): a list of ``levels + 1`` tensors (B, widths[l], H/2^l, W/2^l).
+
+        ``hooks`` maps a level ``l`` (0 = full resolution) to ``f(features) -> features``,
+        applied to the encoder's features at that level before they are downsampled (and used
+        as the skip) and to the decoder's features after its block at that level (SpecularNet
+        inserts its cross-attention this way).
+        """
+        hooks = hooks or {}
+
+        def hooked(level: int, feature: torch.Tensor) -> torch.Tensor:
+            return hooks[level](feature) if level in hooks else feature
+
         x, (H, W) = self._pad(x)
-        skips = [self.stem(x)]
-        for block in self.down:
-            skips.append(block(F.avg_pool2d(skips[-1], 2)))
+        skips = [hooked(0, self.stem(x))]
+        for level, block in enumerate(self.down, start=1):
+            skips.append(hooked(level, block(F.avg_pool2d(skips[-1], 2))))
         feature = skips[-1]
         features = [feature]
-        for block, skip in zip(self.up, reversed(skips[:-1])):
+        for level, (block, skip) in zip(reversed(range(self.levels)), zip(self.up, reversed(skips[:-1]))):
             feature = F.interpolate(feature, size=skip.shape[-2:], mode="bilinear", align_corners=False)
-            feature = block(torch.cat([feature, skip], dim=1))
+            feature = hooked(level, block(torch.cat([feature, skip], dim=1)))
             features.append(feature)
         scale = [2**(self.levels - i) for i in range(self.levels + 1)]
         return [f[..., : -(-H // s), : -(-W // s)] for f, s in zip(features, scale)]

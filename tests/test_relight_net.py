@@ -1,0 +1,101 @@
+"""DiffuseNet / SpecularNet and texel Gaussians: shapes, baselines at zero, ray-order invariance,
+and a tiny relighting fit through the Gaussian renderer that lowers its loss."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from egorelight_cli.geometry.cameras import Camera
+from egorelight_cli.nn.relight_net import DiffuseNet, SpecularNet
+from egorelight_cli.nn.unet import UNet
+from egorelight_cli.render.gaussians import render_gaussians
+from egorelight_cli.render.image_metrics import ssim
+from egorelight_cli.render.uv_gaussians import diffuse_colour, gaussian_regulariser, texel_footprint, texel_gaussians
+
+
+def _grid_points(n: int = 16, spacing: float = 0.01) -> torch.Tensor:
+    v, u = torch.meshgrid(torch.arange(n, dtype=torch.float64), torch.arange(n, dtype=torch.float64), indexing="ij")
+    return torch.stack([(u - n / 2) * spacing, (v - n / 2) * spacing, torch.full_like(u, 0.5)], -1)
+
+
+def test_unet_hooks_run_at_their_level():
+    torch.manual_seed(0)
+    net = UNet(3, 2, base_channels=4, levels=2).double()
+    x = torch.randn(1, 3, 16, 16, dtype=torch.float64)
+    seen = []
+
+    def hook(f):
+        seen.append(tuple(f.shape))
+        return f
+
+    torch.testing.assert_close(net.decoder_features(x, {1: hook})[-1], net.decoder_features(x)[-1])
+    assert seen == [(1, 8, 8, 8), (1, 8, 8, 8)]  # encoder (before downsampling), decoder (after its block)
+    changed = net.decoder_features(x, {1: lambda f: f + 1.0})[-1]
+    assert not torch.allclose(changed, net.decoder_features(x)[-1])
+
+
+def test_specular_net_is_non_negative_and_ignores_ray_order():
+    torch.manual_seed(1)
+    net = SpecularNet(base_channels=8, levels=2, attention_level=1, heads=2).double()
+    features = torch.randn(2, 7, 16, 16, dtype=torch.float64)
+    rays = torch.randn(2, 8, 8, 5, 6, dtype=torch.float64)
+    valid = torch.rand(2, 8, 8, 5) > 0.2
+    out = net(features, rays, valid)
+    assert out.shape == (2, 3, 16, 16) and (out >= 0).all()
+    order = torch.randperm(5)
+    torch.testing.assert_close(net(features, rays[..., order, :], valid[..., order]), out)
+    other = rays.clone()
+    other[..., 3:] *= 2.0  # brighter lights change the specular colour
+    assert not torch.allclose(net(features, other, valid), out)
+    plain = SpecularNet(base_channels=8, levels=2, attention=False).double()
+    assert plain(features).shape == (2, 3, 16, 16)
+
+
+def test_texel_footprint_and_the_zero_output_gaussians():
+    points = _grid_points(8, 0.01)
+    coverage = torch.ones(8, 8, dtype=torch.bool)
+    coverage[0, 0] = False
+    footprint = texel_footprint(points, coverage)
+    np.testing.assert_allclose(footprint[coverage].numpy(), 0.01, rtol=1e-9)
+    raw = torch.zeros(63, 14, dtype=torch.float64)
+    gaussians, offsets = texel_gaussians(points[coverage], footprint[coverage], raw, diffuse_colour(raw))
+    torch.testing.assert_close(gaussians.means, points[coverage])
+    torch.testing.assert_close(gaussians.scales, footprint[coverage][:, None].expand(63, 3))
+    assert torch.all(gaussians.quats == torch.tensor([1.0, 0, 0, 0], dtype=torch.float64))
+    assert float(gaussians.opacities[0]) == pytest.approx(torch.sigmoid(torch.tensor(2.0)).item())
+    assert float(gaussian_regulariser(offsets, gaussians.scales, footprint[coverage])) == 0.0
+    big = gaussian_regulariser(torch.full((63, 3), 0.02, dtype=torch.float64), gaussians.scales * 3,
+                               footprint[coverage])
+    assert float(big) > 1.0
+
+
+def test_a_tiny_relighting_fit_lowers_its_loss_and_renders():
+    torch.manual_seed(0)
+    n = 16
+    points = _grid_points(n, 0.008).reshape(-1, 3)
+    footprint = torch.full((n * n,), 0.008, dtype=torch.float64)
+    camera = Camera("pinhole", [[60.0, 0, 15.5], [0, 60.0, 15.5], [0, 0, 1]], np.zeros(5), 32, 32, np.eye(4))
+    v, u = torch.meshgrid(torch.linspace(0, 1, n), torch.linspace(0, 1, n), indexing="ij")
+    albedo = torch.stack([u, v, 0.5 * torch.ones_like(u)]).double()
+    inputs = torch.cat([albedo, torch.ones(1, n, n), torch.tensor([0, 0, -1.0]).view(3, 1, 1).expand(3, n, n),
+                        2.0 * torch.ones(3, n, n)]).double()[None]
+    target_gaussians, _ = texel_gaussians(points, footprint, torch.zeros(n * n, 14, dtype=torch.float64),
+                                          (albedo * 2.0 / np.pi).reshape(3, -1).T)
+    target = render_gaussians(target_gaussians, camera).colour.detach()
+    diffuse = DiffuseNet(base_channels=8, levels=2).double()
+    optimizer = torch.optim.Adam(diffuse.parameters(), lr=1e-2)
+    losses = []
+    for _ in range(30):
+        raw = diffuse(inputs)[0].reshape(14, -1).T
+        gaussians, offsets = texel_gaussians(points, footprint, raw, diffuse_colour(raw))
+        image = render_gaussians(gaussians, camera).colour
+        loss = (image - target).abs().mean() + 10 * (1 - ssim(image, target)) \
+            + gaussian_regulariser(offsets, gaussians.scales, footprint)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+        losses.append(float(loss.detach()))
+    assert losses[-1] < 0.5 * losses[0]
+    assert float(image.detach().max()) > 0.1
