@@ -106,12 +106,21 @@ def score_meshes(predicted: dict[str, np.ndarray], frame_ids: np.ndarray, truth:
 
 def visibility_of_truth(capture: Capture, calibration, sequence: str, truth: MeshSequence,
                         frame_ids: np.ndarray) -> dict[int, np.ndarray]:
-    """Frame id -> (V,) ego-visible true vertices for the frames of ``frame_ids`` in the truth."""
+    """Frame id -> (V,) ego-visible true vertices for the frames of ``frame_ids`` in the truth.
+
+    A sequence without head poses (the HMD is not worn, e.g. ``relight_train``) has no ego view:
+    every vertex is then unseen (the ego-visible metrics are NaN, the full-body ones still hold).
+    """
+    worn = sequence in calibration.head_poses
     out = {}
     for fid in np.asarray(frame_ids):
         if fid in truth.frame_ids:
+            vertices = truth.vertices[truth.index_of(int(fid))]
+            if not worn:
+                out[int(fid)] = np.zeros(len(vertices), bool)
+                continue
             cams = down_cameras(capture, calibration, sequence, int(fid))
-            out[int(fid)] = ego_visible_vertices(truth.vertices[truth.index_of(int(fid))], truth.faces, cams)
+            out[int(fid)] = ego_visible_vertices(vertices, truth.faces, cams)
     return out
 
 
