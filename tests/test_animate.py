@@ -108,6 +108,13 @@ def test_depth_agnostic_student_fine_tunes_on_flat_lit_relight_frames(animate_in
     metrics = _metrics(out)
     assert metrics["no_depth"] is True
     assert metrics["training_frames"] == 2  # frames 0 and 2 are flat-lit, 1 and 3 env-lit
+    # the student drives meshes_student/relight_train, scored on a sequence without the HMD
+    meshes = animate_inputs["root"] / "meshes_student"
+    code = _run("--preset", "tiny", "-q", "animate", "--no-depth", "--motion", gt / "relight_train" / "motion.npz",
+                "--model", out, "--capture", animate_inputs["capture"], "--seq", "relight_train", "--out", meshes)
+    assert code == 0
+    scores = _metrics(meshes)
+    assert scores["no_depth_p2s_cm"] < 5.0 and scores["p2s_ego_visible_cm"] is None  # no ego view: NaN -> null
 
 
 def _one_line_error(capsys, code: int, *fragments: str) -> None:
