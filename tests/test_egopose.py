@@ -257,6 +257,7 @@ def test_interrupted_training_resumes_to_the_same_model(tiny_capture, oracle_cal
     from egorelight_cli.config import resolve_config
     from egorelight_cli.io.capture import Capture
     from egorelight_cli.io.keypoints import read_keypoints_npz
+    from egorelight_cli.nn.training import Checkpoint
     from egorelight_cli.stages import egopose
     from egorelight_cli.stages.egopose import EgoPoseSettings, load_frames, rig_geometry, train_egopose
 
@@ -268,6 +269,7 @@ def test_interrupted_training_resumes_to_the_same_model(tiny_capture, oracle_cal
     rig = rig_geometry(capture, oracle_calibration)
     settings = EgoPoseSettings(cfg)
     whole = train_egopose(frames, mocap, rig, settings).net.state_dict()
+    resumable = Checkpoint(tmp_path, key="same run", resume=True)
 
     calls = {"n": 0}
     original = egopose.frame_losses
@@ -280,10 +282,10 @@ def test_interrupted_training_resumes_to_the_same_model(tiny_capture, oracle_cal
 
     monkeypatch.setattr(egopose, "frame_losses", failing)
     with pytest.raises(KeyboardInterrupt):
-        train_egopose(frames, mocap, rig, settings, checkpoint_dir=tmp_path)
+        train_egopose(frames, mocap, rig, settings, checkpoint_dir=resumable)
     monkeypatch.setattr(egopose, "frame_losses", original)
     assert (tmp_path / "frame.pt").is_file()
-    resumed = train_egopose(frames, mocap, rig, settings, checkpoint_dir=tmp_path).net.state_dict()
+    resumed = train_egopose(frames, mocap, rig, settings, checkpoint_dir=resumable).net.state_dict()
     for key, value in whole.items():
         torch.testing.assert_close(resumed[key], value, msg=key)
 

@@ -2,14 +2,16 @@
 
 The stage supplies ``step_fn(step) -> {"loss": tensor, <other losses>: tensors}`` (it draws its
 own batch, seeded by the step); :func:`train` runs the optimiser, logs the losses, saves a
-checkpoint every ``checkpoint_every`` steps and resumes from one when it exists, so a killed
-training run continues where it stopped.
+checkpoint every ``checkpoint_every`` steps and, only when asked (``--resume``, see
+:class:`Checkpoint`), continues a killed run from a checkpoint of the same cache key with its
+optimiser and learning-rate schedule restored.
 """
 
 from __future__ import annotations
 
 import os
 from collections.abc import Callable
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import torch
@@ -18,40 +20,103 @@ from egorelight_cli import console
 from egorelight_cli.errors import EgorelightError
 
 
-def save_checkpoint(path: str | Path, model: torch.nn.Module, optimizer: torch.optim.Optimizer, step: int,
-                    curve: list[dict[str, float]]) -> None:
-    """Atomically write a resumable checkpoint."""
-    path = Path(path)
+@dataclass(frozen=True)
+class Checkpoint:
+    """Where a training run keeps its resumable state, and whether to continue from it.
+
+    A run without ``resume`` ignores (and later replaces) an existing checkpoint. With
+    ``resume``, a checkpoint is continued only when it was written under the same ``key`` (the
+    run's cache key: stage, config, options and input digests); one made with another key is a
+    one-line error (run without ``--resume`` to start over), never a silent mix of two runs.
+    ``checkpoint / "name.pt"`` is the same choice for a file below ``path`` (a stage with phases).
+    """
+
+    path: Path
+    key: str | None = None
+    resume: bool = False
+
+    def __truediv__(self, name: str) -> "Checkpoint":
+        return replace(self, path=Path(self.path) / name)
+
+
+def checkpoint_beside(out: str | Path, suffix: str = ".pt") -> Path:
+    """The hidden checkpoint location of a training run writing ``out``: ``.<name>.checkpoint<suffix>``
+    next to it (removed once the model artifact is written)."""
+    out = Path(out)
+    return out.parent / f".{out.name}.checkpoint{suffix}"
+
+
+def as_checkpoint(checkpoint: "Checkpoint | str | Path | None") -> Checkpoint | None:
+    """A plain path is a checkpoint that is written but never resumed from."""
+    if checkpoint is None or isinstance(checkpoint, Checkpoint):
+        return checkpoint
+    return Checkpoint(Path(checkpoint))
+
+
+def save_checkpoint(checkpoint: Checkpoint, model: torch.nn.Module, optimizer: torch.optim.Optimizer, step: int,
+                    curve: list[dict[str, float]], scheduler: torch.optim.lr_scheduler.LRScheduler | None = None) -> None:
+    """Atomically write a resumable checkpoint: model, optimiser, scheduler, RNG, step, curve, key."""
+    path = Path(checkpoint.path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".tmp")
-    torch.save({"model": model.state_dict(), "optimizer": optimizer.state_dict(), "step": step, "curve": curve,
-                "torch_rng": torch.get_rng_state()}, tmp)
+    torch.save({"model": model.state_dict(), "optimizer": optimizer.state_dict(),
+                "scheduler": scheduler.state_dict() if scheduler is not None else None, "step": step, "curve": curve,
+                "torch_rng": torch.get_rng_state(), "key": checkpoint.key}, tmp)
     os.replace(tmp, path)
 
 
-def load_checkpoint(path: str | Path, model: torch.nn.Module, optimizer: torch.optim.Optimizer) -> tuple[int, list]:
-    """Restore model, optimiser and RNG; returns (next step, curve so far)."""
+def load_checkpoint(checkpoint: Checkpoint, model: torch.nn.Module, optimizer: torch.optim.Optimizer,
+                    scheduler: torch.optim.lr_scheduler.LRScheduler | None = None) -> tuple[int, list]:
+    """Restore model, optimiser, scheduler and RNG; returns (next step, curve so far)."""
+    path = checkpoint.path
     try:
         data = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:
+        raise EgorelightError(f"cannot resume from checkpoint ({type(exc).__name__}: {exc}); run without --resume "
+                              "to start over", path) from None
+    if not isinstance(data, dict) or data.get("key") != checkpoint.key:
+        raise EgorelightError("cannot resume: the checkpoint was made with other settings or inputs (its cache key "
+                              "differs); run without --resume to start over", path)
+    if (scheduler is not None) != (data.get("scheduler") is not None):
+        raise EgorelightError("cannot resume: the checkpoint's learning-rate schedule does not match this run", path)
+    try:
         model.load_state_dict(data["model"])
         optimizer.load_state_dict(data["optimizer"])
+        if scheduler is not None:
+            scheduler.load_state_dict(data["scheduler"])
         torch.set_rng_state(data["torch_rng"])
+        return int(data["step"]), list(data["curve"])
     except Exception as exc:
-        raise EgorelightError(f"cannot resume from checkpoint ({type(exc).__name__}: {exc}); delete it to restart",
-                              path) from None
-    return int(data["step"]), list(data["curve"])
+        raise EgorelightError(f"cannot resume from checkpoint ({type(exc).__name__}: {exc}); run without --resume "
+                              "to start over", path) from None
+
+
+def _start(checkpoint: Checkpoint | None, model, optimizer, scheduler, desc: str) -> tuple[int, list]:
+    """(first step, curve): from the checkpoint when resuming, else from scratch."""
+    if checkpoint is None:
+        return 0, []
+    if not checkpoint.resume:
+        if Path(checkpoint.path).is_file():
+            console.info(f"{desc}: starting from step 0; the existing checkpoint {checkpoint.path} is ignored and "
+                         "replaced (--resume continues from it)")
+        return 0, []
+    if not Path(checkpoint.path).is_file():
+        console.info(f"{desc}: --resume given but there is no checkpoint at {checkpoint.path}; starting from step 0")
+        return 0, []
+    start, curve = load_checkpoint(checkpoint, model, optimizer, scheduler)
+    console.info(f"resuming {desc} at step {start} from {checkpoint.path}")
+    return start, curve
 
 
 def train(model: torch.nn.Module, optimizer: torch.optim.Optimizer,
           step_fn: Callable[[int], dict[str, torch.Tensor]], num_steps: int,
-          checkpoint: str | Path | None = None, checkpoint_every: int = 200, log_every: int = 10,
+          checkpoint: Checkpoint | str | Path | None = None, checkpoint_every: int = 200, log_every: int = 10,
           scheduler: torch.optim.lr_scheduler.LRScheduler | None = None, desc: str = "training") -> list[dict]:
     """Optimise ``model`` for ``num_steps`` steps; returns the curve (every ``log_every`` steps,
-    each loss averaged over the steps since the previous row)."""
-    start, curve = 0, []
-    if checkpoint is not None and Path(checkpoint).is_file():
-        start, curve = load_checkpoint(checkpoint, model, optimizer)
-        console.info(f"resuming {desc} at step {start} from {checkpoint}")
+    each loss averaged over the steps since the previous row). ``checkpoint``: see
+    :class:`Checkpoint` (a plain path is written, never resumed from)."""
+    checkpoint = as_checkpoint(checkpoint)
+    start, curve = _start(checkpoint, model, optimizer, scheduler, desc)
     model.train()
     sums: dict[str, float] = {}
     count = 0
@@ -73,6 +138,6 @@ def train(model: torch.nn.Module, optimizer: torch.optim.Optimizer,
             curve.append({"step": step + 1, **{k: v / count for k, v in sums.items()}})
             sums, count = {}, 0
         if checkpoint is not None and ((step + 1) % checkpoint_every == 0 or last):
-            save_checkpoint(checkpoint, model, optimizer, step + 1, curve)
+            save_checkpoint(checkpoint, model, optimizer, step + 1, curve, scheduler)
     model.eval()
     return curve

@@ -17,8 +17,9 @@ holds what is around it, callable without the CLI:
   estimates of several jittered copies of the training frames (plus noise). Both phases
   checkpoint and resume (:func:`egorelight_cli.nn.training.train`). The last
   ``train.validation_fraction`` of the frames (a contiguous block, so no near-duplicates of
-  training frames) is held out: it gives the validation MPJPE against the mocap and fits, per
-  joint, how much to trust the estimate over the training mean pose (``train.prior_blend``).
+  training frames) is held out: its first half fits, per joint, how much to trust the estimate
+  over the training mean pose (``train.prior_blend``), its second half gives the validation
+  MPJPE against the mocap, before and after the blend (never scored on the frames it was fit on).
   With ~30 training frames the network memorises the legs, which the down-facing cameras
   barely see behind the torso; the blend moves them towards the mean pose and keeps the hands.
 * :func:`predict`: per-frame estimates, temporal refinement, confidences (agreement of the two
@@ -403,25 +404,38 @@ def fit_prior_blend(pred: np.ndarray, truth: np.ndarray, prior: np.ndarray, T_wo
     return np.clip(num / np.maximum(den, 1e-12), 0.0, 1.0).astype(np.float32)
 
 
+def blend_split(num_frames: int) -> tuple[np.ndarray, np.ndarray]:
+    """(fit rows, report rows) of the held-out frames: the pose-prior blend is fitted on the first
+    half and scored on the second (contiguous halves), never on the frames it was fitted to."""
+    half = num_frames // 2
+    return np.arange(half), np.arange(half, num_frames)
+
+
 def _validate(net: EgoPoseNet, frames: EgoFrames, mocap: Keypoints, rig: RigGeometry, settings: EgoPoseSettings,
               mean_pose: np.ndarray) -> dict:
-    """MPJPE (cm) vs the mocap on the held-out frames; fits the pose-prior blend there when
-    ``train.prior_blend`` (metrics before and after)."""
+    """MPJPE (cm) vs the mocap on the held-out frames. With ``train.prior_blend`` the blend is
+    fitted on the first half of them (:func:`blend_split`) and every ``validation_*`` metric,
+    before and after the blend, is reported on the second half."""
     sigma = float(settings.cfg.confidence_sigma_m)
-    truth = mocap.xyz[np.searchsorted(mocap.frame_ids, frames.frame_ids)]
-    before = predict(net, frames, rig, sigma)
-    metrics = keypoint_metrics(before.keypoints.xyz, frames.frame_ids, mocap, frames.usable, "validation_")
-    base = keypoint_metrics(mean_pose_keypoints(mean_pose, frames), frames.frame_ids, mocap, frames.usable,
+    fit_rows, report_rows = blend_split(len(frames.frame_ids)) if bool(settings.train.prior_blend) else \
+        (np.arange(0), np.arange(len(frames.frame_ids)))
+    report = frames.select(report_rows)
+    before = predict(net, report, rig, sigma)
+    metrics = keypoint_metrics(before.keypoints.xyz, report.frame_ids, mocap, report.usable, "validation_")
+    base = keypoint_metrics(mean_pose_keypoints(mean_pose, report), report.frame_ids, mocap, report.usable,
                             "validation_mean_pose_")
     metrics.update({k: v for k, v in base.items() if not k.endswith("scored_frames")})
-    if bool(settings.train.prior_blend):
-        blend = fit_prior_blend(before.keypoints.xyz, truth, mean_pose, frames.T_world_from_hmd)
+    if len(fit_rows):
+        fit = frames.select(fit_rows)
+        truth = mocap.xyz[np.searchsorted(mocap.frame_ids, fit.frame_ids)]
+        blend = fit_prior_blend(predict(net, fit, rig, sigma).keypoints.xyz, truth, mean_pose, fit.T_world_from_hmd)
         net.prior_blend.copy_(torch.as_tensor(blend))
-        after = predict(net, frames, rig, sigma)
-        blended = keypoint_metrics(after.keypoints.xyz, frames.frame_ids, mocap, frames.usable, "validation_blended_")
+        after = predict(net, report, rig, sigma)
+        blended = keypoint_metrics(after.keypoints.xyz, report.frame_ids, mocap, report.usable, "validation_blended_")
         metrics.update({k: v for k, v in blended.items() if not k.endswith("scored_frames")})
         metrics.update({"prior_blend_body_mean": round(float(blend[BODY_SLICE].mean()), 3),
-                        "prior_blend_hands_mean": round(float(blend[HANDS_SLICE].mean()), 3)})
+                        "prior_blend_hands_mean": round(float(blend[HANDS_SLICE].mean()), 3),
+                        "prior_blend_fit_frames": int(len(fit_rows))})
     return metrics
 
 
