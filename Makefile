@@ -13,7 +13,13 @@ SUBJECT ?= subjects/demo
 PRESET  ?= cpu
 SEQ     ?= test
 STAMP   := $(VENV)/.installed-stamp
-EGOFLAGS ?= --preset $(PRESET)
+# Threads per stage (issue 23): with make -jN each stage gets a share of the cores, nproc / N (at
+# least 1; plain -j: 1), as --threads; without -j a stage uses every core it may (affinity, cgroup
+# quota, OMP_NUM_THREADS, SLURM_CPUS_PER_TASK). `make THREADS=N` sets it. Evaluated in recipes:
+# make puts -jN into MAKEFLAGS only there.
+MAKE_JOBS = $(patsubst -j%,%,$(filter -j%,$(MAKEFLAGS)))
+THREADS  ?= $(if $(filter -j%,$(MAKEFLAGS)),$(shell expr $$(nproc) / $(or $(MAKE_JOBS),$$(nproc)) \| 1))
+EGOFLAGS ?= --preset $(PRESET) $(if $(THREADS),--threads $(THREADS))
 
 .PHONY: all venv demo test bench clean distclean subject
 

@@ -1,6 +1,6 @@
 """The ``egorelight`` command line: one thin command per stage, no math here.
 
-Global options (``--device``, ``--preset``, ``--set``, ``--force``, ``--seed``, ``-v``/``-q``)
+Global options (``--device``, ``--threads``, ``--preset``, ``--set``, ``--force``, ``--seed``, ``-v``/``-q``)
 may be given before the command (``egorelight --preset tiny ik ...``) or after it
 (``egorelight ik --preset tiny ...``). Known failures print ``egorelight: error: <what>, <file>``
 and exit with code 2; unexpected ones print one line too and show the traceback with ``-v``.
@@ -18,7 +18,7 @@ import click
 
 from egorelight_cli import __version__, console
 from egorelight_cli.errors import EgorelightError
-from egorelight_cli.runtime import DEVICES
+from egorelight_cli.runtime import DEVICES, parse_threads
 
 
 @dataclass
@@ -26,6 +26,7 @@ class RunOptions:
     """Options shared by every stage command."""
 
     device: str = "auto"
+    threads: int | None = None  # None: the cores this process may use (runtime.available_cores)
     preset: str | None = None
     sets: list[str] = field(default_factory=list)
     force: bool = False
@@ -59,6 +60,10 @@ def common_options(func):
     decorators = [
         click.option("--device", type=click.Choice(DEVICES), default=None, expose_value=False,
                      callback=_set_value("device"), help="Compute device (auto: CUDA when present)."),
+        click.option("--threads", default=None, expose_value=False, metavar="N",
+                     callback=lambda ctx, param, value: _set_value("threads")(ctx, param, parse_threads(value)),
+                     help="CPU threads for torch, BLAS/OpenMP and OpenCV (default: the cores this process may "
+                          "use: affinity, cgroup quota, OMP_NUM_THREADS, SLURM_CPUS_PER_TASK)."),
         click.option("--preset", default=None, expose_value=False, callback=_set_value("preset"),
                      help="Named config preset: tiny, cpu (default) or paper."),
         click.option("--set", "sets", multiple=True, expose_value=False, callback=_set_value("sets"),
@@ -109,7 +114,7 @@ def _stage_run(ctx: click.Context, stage: str):
 
     opts = _options(ctx)
     return StageRun(stage, preset=opts.preset, sets=tuple(opts.sets), seed=opts.seed, force=opts.force,
-                    device=opts.device)
+                    device=opts.device, threads=opts.threads)
 
 
 def _character_run(ctx: click.Context):

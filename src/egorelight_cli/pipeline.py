@@ -19,7 +19,7 @@ from egorelight_cli.artifacts import Artifact, ArtifactWriter, cache_key, is_up_
 from egorelight_cli.config import Config, resolve_config
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.outputs import check_output
-from egorelight_cli.runtime import resolve_device
+from egorelight_cli.runtime import apply_threads, available_cores, resolve_device
 
 
 @dataclass(frozen=True)
@@ -32,6 +32,7 @@ class StageRun:
     seed: int | None = None
     force: bool = False
     device: str = "auto"
+    threads: int | None = None  # --threads; None: runtime.available_cores()
 
     def config(self) -> Config:
         return resolve_config(self.stage, self.preset, self.sets, self.seed)
@@ -60,6 +61,8 @@ class StageRun:
                 key and the manifest's ``sources``.
         """
         out = Path(out)
+        threads, threads_source = (self.threads, "--threads") if self.threads is not None else available_cores()
+        apply_threads(threads)  # before the stage's work (every command works inside ``write``)
         config = self.config()
         device = self.compute_device()
         check_output(out, kind, [p for a in inputs for p in (a.path, a.manifest_path)] + list(source_files))
@@ -80,6 +83,8 @@ class StageRun:
                 writer.extra["sources"] = sources
             writer.runtime["device"] = device.type
             writer.runtime["device_requested"] = self.device
+            writer.runtime["threads"] = threads
+            writer.runtime["threads_source"] = threads_source
             writer.runtime["preset"] = config.preset
             write(writer, config)
             writer.timing["wall_s"] = round(time.perf_counter() - started, 3)
