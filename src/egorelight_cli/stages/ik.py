@@ -58,9 +58,7 @@ DoF limits at the end (``project_limits``).
 
 from __future__ import annotations
 
-import contextlib
 import copy
-import ctypes
 import math
 import re
 import time
@@ -81,6 +79,7 @@ from egorelight_cli.geometry.rotations import axis_angle_rotation
 from egorelight_cli.geometry.skeleton import forward_kinematics
 from egorelight_cli.io.keypoints import Keypoints
 from egorelight_cli.io.motion import Motion
+from egorelight_cli.runtime import blas_threads
 from egorelight_cli.stages.ik_robust import check_keypoint_units, distant_keypoints, huber_factors, residual_outliers
 from egorelight_cli.stages.ik_settings import IKSettings
 from egorelight_cli.structures.character import Character
@@ -662,7 +661,7 @@ class _StageProblem:
             ab[np.broadcast_to(d, col.shape)[valid], col[valid]] = 0.0
             ab[0, k] = 1.0
             rhs = np.where(fixed, value, rhs)
-        with _single_threaded_lapack():
+        with blas_threads(1):  # a chain of small BLAS calls: see runtime.blas_threads
             try:
                 factor = cholesky_banded(ab, overwrite_ab=True, lower=True, check_finite=False)
             except np.linalg.LinAlgError:  # not positive definite (round-off): damp harder
@@ -673,41 +672,6 @@ class _StageProblem:
 def _norm(diff: torch.Tensor) -> torch.Tensor:
     """Lengths (...,) of (...,3) vectors, with a finite gradient at zero."""
     return ((diff * diff).sum(dim=-1) + 1e-24).sqrt()
-
-
-@contextlib.contextmanager
-def _single_threaded_lapack():
-    """Run scipy's OpenBLAS with one thread inside the block.
-
-    The banded Cholesky is a long chain of small BLAS calls; with several OpenBLAS threads each
-    call ends in a thread barrier, and on a machine whose cores are busy (other processes,
-    torch's spinning OpenMP workers) a barrier waits for a time slice: we measured the same
-    factorisation taking 0.02 s or 8 s. One thread is as fast on an idle machine for this size.
-    Uses OpenBLAS's ``*_set_num_threads`` through ctypes (a no-op when it cannot be found).
-    """
-    setter = getter = None
-    try:
-        with open("/proc/self/maps") as maps:
-            paths = {line.split()[-1] for line in maps if "openblas" in line and "scipy.libs" in line}
-        for path in sorted(paths):
-            lib = ctypes.CDLL(path)
-            for prefix in ("scipy_openblas", "openblas"):
-                if hasattr(lib, f"{prefix}_set_num_threads") and hasattr(lib, f"{prefix}_get_num_threads"):
-                    setter, getter = getattr(lib, f"{prefix}_set_num_threads"), getattr(lib, f"{prefix}_get_num_threads")
-                    break
-            if setter is not None:
-                break
-    except OSError:
-        setter = None
-    if setter is None:
-        yield
-        return
-    previous = int(getter())
-    setter(1)
-    try:
-        yield
-    finally:
-        setter(previous)
 
 
 def _levenberg_marquardt(problem: _StageProblem, settings: IKSettings) -> tuple[np.ndarray, StageReport]:
