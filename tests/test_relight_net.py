@@ -57,16 +57,23 @@ def test_texel_footprint_and_the_zero_output_gaussians():
     points = _grid_points(8, 0.01)
     coverage = torch.ones(8, 8, dtype=torch.bool)
     coverage[0, 0] = False
-    footprint = texel_footprint(points, coverage)
-    np.testing.assert_allclose(footprint[coverage].numpy(), 0.01, rtol=1e-9)
+    # one square of 0.08 m laid out over the whole UV square (two triangles): 8x8 texels of 1 cm
+    square = np.array([[0, 0, 0], [0.08, 0, 0], [0.08, 0.08, 0], [0, 0.08, 0]])
+    faces = np.array([[0, 1, 2], [0, 2, 3]])
+    face_uvs = square[faces][..., :2] / 0.08
+    np.testing.assert_allclose(texel_footprint(np.array([0, 1]), square, faces, face_uvs, (8, 8)).numpy(), 0.01,
+                               rtol=1e-9)
+    np.testing.assert_allclose(texel_footprint(np.array([0]), square, faces, face_uvs, (16, 16)).numpy(), 0.005,
+                               rtol=1e-9)
+    footprint = torch.full((8, 8), 0.01, dtype=torch.float64)
     raw = torch.zeros(63, 14, dtype=torch.float64)
     gaussians, offsets = texel_gaussians(points[coverage], footprint[coverage], raw, diffuse_colour(raw))
     torch.testing.assert_close(gaussians.means, points[coverage])
-    torch.testing.assert_close(gaussians.scales, footprint[coverage][:, None].expand(63, 3))
+    torch.testing.assert_close(gaussians.scales, 0.5 * footprint[coverage][:, None].expand(63, 3))
     assert torch.all(gaussians.quats == torch.tensor([1.0, 0, 0, 0], dtype=torch.float64))
     assert float(gaussians.opacities[0]) == pytest.approx(torch.sigmoid(torch.tensor(2.0)).item())
     assert float(gaussian_regulariser(offsets, gaussians.scales, footprint[coverage])) == 0.0
-    big = gaussian_regulariser(torch.full((63, 3), 0.02, dtype=torch.float64), gaussians.scales * 3,
+    big = gaussian_regulariser(torch.full((63, 3), 0.02, dtype=torch.float64), gaussians.scales * 6,
                                footprint[coverage])
     assert float(big) > 1.0
 

@@ -26,6 +26,7 @@ from egorelight_cli.nn.unet import UNet
 DIFFUSE_IN = 10  # a (3), rho (1), n (3), chi (3)
 DIFFUSE_OUT = 14  # dp (3), c_diff (3), quaternion (4), scale (3), opacity (1)
 SPECULAR_IN = 7  # a (3), rho (1), n (3)
+SPECULAR_BIAS = -4.0  # softplus(-4) = 0.018
 
 
 class DiffuseNet(nn.Module):
@@ -48,6 +49,7 @@ class SpecularNet(nn.Module):
         if not 0 <= attention_level <= levels:
             raise ValueError(f"attention_level {attention_level} outside 0..{levels}")
         self.unet = UNet(SPECULAR_IN, 3, base_channels, levels)
+        nn.init.constant_(self.unet.head.bias, SPECULAR_BIAS)  # starts with a faint specular colour
         self.attention_level = attention_level
         self.use_attention = attention
         width = self.unet.widths[attention_level]

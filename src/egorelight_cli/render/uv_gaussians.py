@@ -6,8 +6,8 @@ a predicted offset. DiffuseNet's 14 raw channels per texel are activated here
 
 * offset ``dp = max_offset_m * tanh(x)`` (world frame, metres), so a Gaussian stays near its texel;
 * rotation: the quaternion ``normalize((1, 0, 0, 0) + x)`` (identity at zero);
-* scale: ``s = footprint * exp(log_range * tanh(x))`` per axis, with ``footprint`` the texel's
-  surface size (:func:`texel_footprint`), so scales stay within ``[1/e^r, e^r]`` footprints;
+* scale: ``s = base footprint exp(log_range tanh(x))`` per axis, with ``footprint`` the texel's
+  surface size (:func:`texel_footprint`) and ``base = 0.5``, so a splat stays near its texel;
 * opacity ``sigmoid(x + opacity_bias)``;
 * diffuse colour ``softplus(x)`` (HDR, non-negative).
 
@@ -18,6 +18,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 
@@ -29,30 +30,29 @@ class TexelGaussianSettings:
     """Activation ranges (metres or ratios)."""
 
     max_offset_m: float = 0.01
+    base_scale: float = 0.5  # standard deviation of an untrained Gaussian, in footprints
     log_scale_range: float = 1.0
     opacity_bias: float = 2.0
 
 
-def texel_footprint(points: torch.Tensor, coverage: torch.Tensor) -> torch.Tensor:
-    """(H,W) surface size of each texel, metres: the mean distance to its covered 4-neighbours.
+def texel_footprint(face_id: np.ndarray, vertices: np.ndarray, faces: np.ndarray, face_uvs: np.ndarray,
+                    resolution: tuple[int, int]) -> torch.Tensor:
+    """(N,) surface size (metres) of the texels sampling faces ``face_id`` (N,).
 
-    ``points`` (H,W,3) texel surface points, ``coverage`` (H,W) bool. A texel without covered
-    neighbours takes the median footprint.
+    A texel covers ``1 / (H W)`` of UV space; on its face that is ``world area / UV area`` times
+    as much surface, so its footprint is ``sqrt(area_world / (area_uv H W))``. (Distances to
+    neighbouring texels would jump across UV seams.) Faces without UV area take the median.
     """
-    sums = torch.zeros(points.shape[:2], dtype=points.dtype)
-    counts = torch.zeros(points.shape[:2], dtype=points.dtype)
-    for axis in (0, 1):
-        step = torch.linalg.vector_norm(points.diff(dim=axis), dim=-1)
-        both = (coverage.narrow(axis, 1, coverage.shape[axis] - 1) & coverage.narrow(axis, 0, coverage.shape[axis] - 1))
-        step = torch.where(both, step, torch.zeros_like(step)).to(points.dtype)
-        pad_before = [0, 0, 1, 0] if axis == 0 else [1, 0]
-        pad_after = [0, 0, 0, 1] if axis == 0 else [0, 1]
-        sums += F.pad(step, pad_before) + F.pad(step, pad_after)
-        counts += F.pad(both.to(points.dtype), pad_before) + F.pad(both.to(points.dtype), pad_after)
-    footprint = sums / counts.clamp_min(1)
-    has = (counts > 0) & coverage
-    fallback = footprint[has].median() if bool(has.any()) else torch.tensor(1e-2, dtype=points.dtype)
-    return torch.where(has, footprint, fallback)
+    corners = np.asarray(vertices, dtype=np.float64)[np.asarray(faces)[face_id]]  # (N,3,3)
+    world = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
+    uv = np.asarray(face_uvs, dtype=np.float64)[face_id]
+    edge1, edge2 = uv[:, 1] - uv[:, 0], uv[:, 2] - uv[:, 0]
+    uv_area = 0.5 * np.abs(edge1[:, 0] * edge2[:, 1] - edge1[:, 1] * edge2[:, 0])
+    height, width = resolution
+    good = uv_area > 1e-12
+    footprint = np.sqrt(world / np.where(good, uv_area, 1.0) / (height * width))
+    fallback = np.median(footprint[good]) if good.any() else 1e-2
+    return torch.from_numpy(np.where(good, footprint, fallback))
 
 
 def texel_gaussians(points: torch.Tensor, footprint: torch.Tensor, raw: torch.Tensor, colours: torch.Tensor,
@@ -69,7 +69,7 @@ def texel_gaussians(points: torch.Tensor, footprint: torch.Tensor, raw: torch.Te
     offsets = settings.max_offset_m * torch.tanh(raw[:, 0:3])
     identity = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=raw.dtype)
     quats = F.normalize(identity + raw[:, 6:10], dim=-1)
-    scales = footprint[:, None] * torch.exp(settings.log_scale_range * torch.tanh(raw[:, 10:13]))
+    scales = settings.base_scale * footprint[:, None] * torch.exp(settings.log_scale_range * torch.tanh(raw[:, 10:13]))
     opacities = torch.sigmoid(raw[:, 13] + settings.opacity_bias)
     return GaussianSet(points + offsets, quats, scales, opacities, colours), offsets
 

@@ -40,7 +40,7 @@ PREVIEW_PNG = "preview.png"
 MAPS_DIR = "maps"
 
 
-def _load_meshes(path: Path, character: Character) -> tuple[MeshSequence, Artifact | None]:
+def load_character_meshes(path: Path, character: Character) -> tuple[MeshSequence, Artifact | None]:
     meshes, artifact = load_meshes(path)
     if meshes.vertices.shape[1] != len(character.vertices):
         raise EgorelightError(f"meshes have {meshes.vertices.shape[1]} vertices, the character "
@@ -48,7 +48,8 @@ def _load_meshes(path: Path, character: Character) -> tuple[MeshSequence, Artifa
     return meshes, artifact
 
 
-def _studio_cameras(capture: Capture, sequence) -> list[str]:
+def training_cameras(capture: Capture, sequence) -> list[str]:
+    """The sequence's studio cameras (role ``studio``) that are not held out."""
     held_out = set(sequence.doc.get("held_out_cameras", []))
     names = [n for n in sequence.studio_cameras if capture.studio_camera_roles.get(n, "studio") == "studio"]
     return [n for n in names if n not in held_out]
@@ -92,14 +93,14 @@ class GeoliftCommands:
         capture, capture_artifact = open_capture(capture_path)
         sequence = capture.sequence(str(cfg.train.sequence))
         sequence.require_stream("recon")
-        meshes, meshes_artifact = _load_meshes(meshes_path, character)
+        meshes, meshes_artifact = load_character_meshes(meshes_path, character)
         frames = sequence.flat_lit(np.intersect1d(meshes.frame_ids, sequence.content_frame_ids))
         if len(frames) < 2:
             raise EgorelightError(f"the meshes cover {len(frames)} flat-lit frame(s) of sequence {sequence.name!r}; "
                                   "training and validation need at least 2", meshes_path)
         held = max(1, int(round(float(cfg.train.validation_fraction) * len(frames))))
         train_frames, val_frames = frames[:-held], frames[-held:]
-        cameras = _studio_cameras(capture, sequence)
+        cameras = training_cameras(capture, sequence)
         inputs = [a for a in (capture_artifact, character_artifact, meshes_artifact) if a is not None]
         sources = character_sources(character_spec, character_artifact) + ([] if meshes_artifact else [meshes_path])
         self.run.compute_device()  # CPU stage: --device cuda is refused, not silently ignored
@@ -152,7 +153,7 @@ class GeoliftCommands:
         from egorelight_cli.stages.ik_commands import character_sources
 
         character, character_artifact = load_character(character_spec)
-        meshes, meshes_artifact = _load_meshes(meshes_path, character)
+        meshes, meshes_artifact = load_character_meshes(meshes_path, character)
         model, extra, model_artifact = load_geolift_model(model_path)
         capture = sequence = capture_artifact = None
         if capture_path is not None:

@@ -117,6 +117,7 @@ def write_uvmaps(writer: ArtifactWriter, cfg: Config, model: GeoLiftNet, extra: 
                     np.concatenate([np.pad(r, ((0, 0), (0, width - r.shape[1]), (0, 0)), constant_values=255)
                                     for r in rows], axis=0))
     writer.metrics.update({"frames": T, "sequence": sequence.name if sequence is not None else None,
+                           "flat_scale": float(extra.get("flat_scale", 1.0)),
                            "uv_resolution": int(extra["uv_resolution"]), "frames_with_lighting_features": featured,
                            "preview_columns": "coarse normals | GeoLift normals | flat-lit texture | true normals"})
     if truth is not None and truth.available:

@@ -1,0 +1,249 @@
+"""The ``egorelight train relight`` and ``egorelight relight`` commands.
+
+``train relight`` (capture + tracked meshes + uvmaps of its relit training sequence) fits
+:class:`~egorelight_cli.stages.relight.RelightModel` on the HDR-lit frames seen by the
+non-held-out studio cameras and writes a model artifact; the last frames are held out and scored
+(PSNR/SSIM next to the Lambert and baked-texture baselines).
+
+``relight`` (capture + meshes + uvmaps of a sequence + model) renders the avatar under the
+sequence's own lighting into the sequence's held-out cameras (``--cameras all``: every studio
+camera) and writes a ``renders`` artifact: ``<camera>/<frame>.exr`` (linear HDR, layers ``""``
+RGB, ``diffuse``, ``specular``, ``alpha``) and ``<camera>/<frame>.png`` (the metric tone
+mapping), ``preview.png``, and the scores of every view against the captured image.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from egorelight_cli import console
+from egorelight_cli.artifacts import Artifact, ArtifactWriter, open_artifact
+from egorelight_cli.config import Config
+from egorelight_cli.errors import EgorelightError
+from egorelight_cli.io.capture import Capture, frame_file, open_capture
+from egorelight_cli.io.exr import read_exr, write_exr_layers
+from egorelight_cli.io.images import read_image, write_image
+from egorelight_cli.nn.training import train
+from egorelight_cli.pipeline import StageRun
+from egorelight_cli.render.lighting import CaptureEnvmaps, light_intensities
+from egorelight_cli.render.lightstage import LightStage
+from egorelight_cli.render.raster import rasterize_uv
+from egorelight_cli.stages import relight as rl
+from egorelight_cli.stages.geolift_commands import load_character_meshes, map_path, training_cameras
+from egorelight_cli.stages.relight_eval import RelightScores, score_view
+
+PREVIEW_PNG = "preview.png"
+UVMAP_LAYERS = ("albedo", "shadow", "normal", "diffuse")
+
+
+class RelightData:
+    """Frames (uvmaps + meshes + lighting) and studio views of one sequence, loaded on demand."""
+
+    def __init__(self, capture: Capture, sequence, meshes, uvmaps: Artifact, character, resolution: int,
+                 attention_level: int, rays: int):
+        self.capture, self.sequence, self.meshes, self.uvmaps, self.character = capture, sequence, meshes, uvmaps, character
+        self.raster = rasterize_uv(character.face_uvs, resolution)
+        self.low_raster = rl.low_resolution_raster(character.face_uvs, resolution, attention_level)
+        self.coverage = torch.from_numpy(self.raster.coverage)
+        self.lightstage = LightStage.from_json(capture.lights_path())
+        self.envmaps = CaptureEnvmaps(capture.root)
+        self.rays = rays
+        names = character.segmentation_names
+        self.head_vertices = np.isin(character.segmentation, [k for k, v in names.items() if v in ("hair", "face")])
+        self._frames: dict[int, rl.RelightFrame] = {}
+        self._rays: dict[tuple[int, str], tuple[torch.Tensor, torch.Tensor]] = {}
+
+    def frame(self, frame_id: int) -> rl.RelightFrame:
+        if frame_id not in self._frames:
+            exr = read_exr(self.uvmaps.root / map_path(frame_id))
+            if exr.shape != self.raster.resolution:
+                raise EgorelightError(f"uvmaps are {exr.shape[1]}x{exr.shape[0]}, the model works at "
+                                      f"{self.raster.resolution[1]}x{self.raster.resolution[0]}", self.uvmaps.root)
+            maps = {name: exr.layer(name) for name in UVMAP_LAYERS
+                    if any(channel.startswith(f"{name}.") for channel in exr.channels)}
+            intensities = light_intensities(self.lightstage, self.sequence.light_entry(frame_id), self.envmaps)
+            vertices = self.meshes.vertices[self.meshes.index_of(frame_id)].astype(np.float64)
+            self._frames[frame_id] = rl.frame_inputs(self.raster, maps, vertices, self.character.faces,
+                                                     self.character.face_uvs, intensities, self.head_vertices,
+                                                     float(self.uvmaps.manifest["metrics"].get("flat_scale", 1.0)))
+        return self._frames[frame_id]
+
+    def view_rays(self, frame_id: int, camera: str) -> tuple[torch.Tensor, torch.Tensor]:
+        key = (frame_id, camera)
+        if key not in self._rays:
+            centre = self.capture.studio_cameras[camera].centre_world
+            self._rays[key] = rl.camera_rays(self.frame(frame_id), centre, self.low_raster, self.character.faces,
+                                             self.lightstage, self.rays)
+        return self._rays[key]
+
+    def target(self, frame_id: int, camera: str) -> tuple[torch.Tensor, torch.Tensor]:
+        """(image (H,W,3) linear, subject mask (H,W) bool) captured by ``camera`` at ``frame_id``."""
+        image = read_exr(self.sequence.studio_image_path(camera, frame_id)).layer("", ("R", "G", "B"))
+        mask = read_image(self.sequence.mask_path(camera, frame_id))
+        mask = mask.reshape(mask.shape[0], mask.shape[1], -1)[..., 0] > 127
+        return torch.from_numpy(np.ascontiguousarray(image)), torch.from_numpy(mask)
+
+
+def _lit_frames(sequence, meshes, uvmaps: Artifact) -> np.ndarray:
+    """Frames with an ``envmap`` light entry, a mesh and a uvmaps file."""
+    entries = {int(f): e for f, e in zip(sequence.frame_ids, sequence.lights)}
+    frames = [int(f) for f in meshes.frame_ids if entries.get(int(f), {}).get("pattern") == "envmap"
+              and (uvmaps.root / map_path(int(f))).is_file()]
+    return np.array(frames, np.int64)
+
+
+def baseline_passes(frame: rl.RelightFrame, coverage: torch.Tensor) -> dict[str, torch.Tensor]:
+    """Per texel colours of the baselines: the Lambert relighting and the baked flat-lit texture ``a``."""
+    return {"lambert": frame.lambert, "baked": frame.maps.permute(1, 2, 0)[coverage][:, 0:3]}
+
+
+def evaluate(model: rl.RelightModel, data: RelightData, views: list[tuple[int, str]], writer: ArtifactWriter | None,
+             preview_count: int = 0) -> tuple[dict, list[np.ndarray]]:
+    """Render and score ``views``; write EXR/PNG renders when ``writer`` is given."""
+    scores, previews = RelightScores(), []
+    preview_at = set(np.linspace(0, len(views) - 1, min(preview_count, len(views))).round().astype(int).tolist()) \
+        if preview_count and views else set()
+    with torch.no_grad():
+        for i, (f, camera_name) in enumerate(console.progress(views, total=len(views), desc="relight")):
+            frame = data.frame(f)
+            rays, valid = data.view_rays(f, camera_name)
+            head = torch.from_numpy(frame.head.astype(np.float32))[:, None]
+            extra = {**baseline_passes(frame, data.coverage), "head": head}
+            render, _ = rl.render_relit(model, frame, data.coverage, data.capture.studio_cameras[camera_name], rays,
+                                        valid, extra_passes=extra)
+            target, mask = data.target(f, camera_name)
+            tonemapped = score_view(scores, render, target, mask)
+            if writer is not None:
+                stem = f"{camera_name}/{frame_file(f, '')}"
+                write_exr_layers(writer.path(f"{stem}.exr"), {
+                    "": render.colour.numpy(), "diffuse": render.passes["diffuse"].numpy(),
+                    "specular": render.passes["specular"].numpy(), "alpha": render.alpha.numpy()[..., None]})
+                write_image(writer.path(f"{stem}.png"), tonemapped["render"])
+            if i in preview_at:
+                previews.append(np.concatenate([tonemapped[k] for k in ("target", "render", "lambert", "baked")], 1))
+    return scores.metrics(), previews
+
+
+@dataclass(frozen=True)
+class RelightCommands:
+    """``relight`` and ``train relight`` over one :class:`StageRun`."""
+
+    run: StageRun
+
+    def _load(self, capture_path: Path, meshes_path: Path, uvmaps_path: Path, character_spec: str, seq: str,
+              net: dict):
+        from egorelight_cli.stages.character_commands import load_character
+
+        character, character_artifact = load_character(character_spec)
+        capture, capture_artifact = open_capture(capture_path)
+        sequence = capture.sequence(seq)
+        meshes, meshes_artifact = load_character_meshes(meshes_path, character)
+        uvmaps = open_artifact(uvmaps_path, kind="uvmaps")
+        data = RelightData(capture, sequence, meshes, uvmaps, character, int(net["uv_resolution"]),
+                           int(net["attention_level"]), int(net["rays"]))
+        frames = _lit_frames(sequence, meshes, uvmaps)
+        if not len(frames):
+            raise EgorelightError(f"no HDR-lit frame of sequence {seq!r} has both a mesh and UV maps", uvmaps_path)
+        inputs = [a for a in (capture_artifact, character_artifact, meshes_artifact, uvmaps) if a is not None]
+        return data, frames, inputs
+
+    def train(self, capture_path: Path, meshes_path: Path, uvmaps_path: Path, character_spec: str, out: Path) -> Path:
+        cfg = self.run.config()
+        net = {k: cfg.net[k] for k in ("uv_resolution", "attention_level", "rays")}
+        data, frames, inputs = self._load(capture_path, meshes_path, uvmaps_path, character_spec,
+                                          str(cfg.train.sequence), net)
+        if len(frames) < 2:
+            raise EgorelightError(f"{len(frames)} HDR-lit frame(s): training and validation need at least 2",
+                                  uvmaps_path)
+        held = max(1, int(round(float(cfg.train.validation_fraction) * len(frames))))
+        cameras = training_cameras(data.capture, data.sequence)
+        train_views = [(int(f), c) for f in frames[:-held] for c in cameras]
+        val_views = [(int(f), c) for f in frames[-held:] for c in cameras]
+        self.run.compute_device()
+        checkpoint = Path(out).parent / f".{Path(out).name}.checkpoint.pt"
+
+        def write(writer: ArtifactWriter, cfg: Config) -> None:
+            from egorelight_cli.io.model import ModelPayload, write_model
+
+            if writer.single_file:
+                raise EgorelightError("a relight model is a directory artifact: give --out a directory name", out)
+            net, t = cfg.net, cfg.train
+            torch.manual_seed(int(cfg.seed))
+            model = rl.RelightModel(int(net.base_channels), int(net.levels), int(net.attention_level), int(net.rays),
+                                    int(net.heads), bool(net.attention))
+            optimizer = torch.optim.Adam(model.parameters(), lr=float(t.lr))
+            steps = int(t.steps)
+
+            def step(k: int) -> dict[str, torch.Tensor]:
+                rng = np.random.default_rng([int(cfg.seed), k])
+                f, camera_name = train_views[int(rng.integers(len(train_views)))]
+                scale = float(rng.uniform(0, 1)) if k >= steps // 2 and rng.uniform() < float(t.augment_p) else 1.0
+                rays, valid = data.view_rays(f, camera_name)
+                render, regulariser = rl.render_relit(model, data.frame(f), data.coverage,
+                                                      data.capture.studio_cameras[camera_name], rays, valid, scale)
+                target, mask = data.target(f, camera_name)
+                return rl.relight_loss(render, target * scale, mask, regulariser)
+
+            started = time.perf_counter()
+            curve = train(model, optimizer, step, steps, checkpoint=checkpoint, log_every=int(t.log_every),
+                          desc="train relight")
+            writer.timing["train_s"] = round(time.perf_counter() - started, 3)
+            model.eval()
+            validation, previews = evaluate(model, data, val_views, None, int(cfg.preview.frames))
+            writer.metrics.update({f"val_{k}": v for k, v in validation.items()})
+            if previews:
+                write_image(writer.path(PREVIEW_PNG), np.concatenate(previews, 0))
+            extra = {"uv_resolution": int(net.uv_resolution), "sequence": data.sequence.name, "cameras": cameras,
+                     "train_frames": frames[:-held].tolist(), "val_frames": frames[-held:].tolist()}
+            write_model(writer.workdir, ModelPayload(rl.MODEL_STAGE, model.architecture(), model.state_dict(), extra,
+                                                     curve), curve_title="relight training loss")
+            writer.metrics.update({"training_views": len(train_views), "validation_views": len(val_views),
+                                   "loss_first": curve[0]["loss"], "loss_last": curve[-1]["loss"],
+                                   "id_mrf": "not used: needs VGG weights (cannot be downloaded); loss is "
+                                             "L1 + 10 (1 - SSIM) + L_reg + L1(diffuse)"})
+
+        result = self.run.produce(out, "model", write, inputs=inputs)
+        checkpoint.unlink(missing_ok=True)
+        return result
+
+    def predict(self, capture_path: Path, meshes_path: Path, uvmaps_path: Path, model_path: Path,
+                character_spec: str, seq: str, all_cameras: bool, out: Path) -> Path:
+        from egorelight_cli.io.model import read_model
+
+        model_artifact = open_artifact(model_path, kind="model")
+        payload = read_model(model_artifact.root, stage=rl.MODEL_STAGE)
+        arch = payload.architecture
+        net = {"uv_resolution": payload.extra["uv_resolution"], "attention_level": arch["attention_level"],
+               "rays": arch["rays"]}
+        data, frames, inputs = self._load(capture_path, meshes_path, uvmaps_path, character_spec, seq, net)
+        model = rl.RelightModel(int(arch["base_channels"]), int(arch["levels"]), int(arch["attention_level"]),
+                                int(arch["rays"]), int(arch["heads"]), bool(arch["attention"]))
+        try:
+            model.load_state_dict(payload.state_dict)
+        except RuntimeError as exc:
+            raise EgorelightError(f"relight model does not fit its architecture ({str(exc).splitlines()[0]})",
+                                  model_path) from None
+        model.eval()
+        held_out = list(data.sequence.doc.get("held_out_cameras", []))
+        cameras = training_cameras(data.capture, data.sequence) + held_out if all_cameras else held_out
+        if not cameras:
+            raise EgorelightError(f"sequence {seq!r} has no held-out cameras (use --cameras all)", capture_path)
+        views = [(int(f), c) for f in frames for c in cameras]
+        self.run.compute_device()
+
+        def write(writer: ArtifactWriter, cfg: Config) -> None:
+            if writer.single_file:
+                raise EgorelightError("a renders artifact is a directory: give --out a directory name", out)
+            metrics, previews = evaluate(model, data, views, writer, int(cfg.preview.frames))
+            writer.metrics.update({"sequence": seq, "cameras": cameras, "views": len(views), **metrics})
+            if previews:
+                write_image(writer.path(PREVIEW_PNG), np.concatenate(previews, 0))
+            writer.units.update({"psnr": "dB on the metric tone mapping (exposure 1, sRGB, clipped)",
+                                 "ssim": "x100", "preview": "captured | relit | Lambert | baked"})
+
+        return self.run.produce(out, "renders", write, inputs=inputs + [model_artifact])

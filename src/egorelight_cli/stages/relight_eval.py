@@ -1,0 +1,51 @@
+"""Scoring relit renders like the paper (Sec. "Relighting Experiments"), against the captured images.
+
+A view is scored on the metric tone mapping (:func:`~egorelight_cli.render.image_metrics.tonemap_for_metrics`)
+inside the subject mask, with the head region excluded (the avatar is trained without the HMD,
+the test frames show it): pixels where the render's ``head`` pass covers more than half of its
+alpha. PSNR (dB) and SSIM (x100) for the model, its diffuse part alone ("without SpecularNet"),
+and the baselines: the Lambert relighting of the flat-lit texture ``a chi / (pi rho s_flat)`` and
+the baked flat-lit texture, all rendered with the
+model's Gaussians. LPIPS and FID need pretrained networks that cannot be downloaded: ``null``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from egorelight_cli.render.gaussians import GaussianRender
+from egorelight_cli.render.image_metrics import psnr, ssim, tonemap_for_metrics
+
+ROWS = {"": "colour", "diffuse_only_": "diffuse", "lambert_": "lambert", "baked_": "baked"}
+
+
+class RelightScores:
+    """Per-view PSNR/SSIM of the model and its baselines, averaged by :meth:`metrics`."""
+
+    def __init__(self):
+        self.values: dict[str, list[float]] = {}
+
+    def add(self, key: str, value: float) -> None:
+        self.values.setdefault(key, []).append(value)
+
+    def metrics(self) -> dict:
+        out = {key: float(np.nanmean(v)) for key, v in self.values.items()}
+        out.update({"lpips": None, "fid": None, "lpips_fid": "need pretrained AlexNet/Inception weights: not scored"})
+        return out
+
+
+def score_view(scores: RelightScores, render: GaussianRender, target: torch.Tensor, mask: torch.Tensor) -> dict:
+    """Score one render against its captured image; returns the tone-mapped uint8 images by name."""
+    head = render.passes["head"][..., 0] > 0.5 * render.alpha.clamp_min(1e-6)
+    region = mask & ~head
+    display = {"target": tonemap_for_metrics(target)}
+    for prefix, name in ROWS.items():
+        image = render.colour if name == "colour" else render.passes[name]
+        display[name if name != "colour" else "render"] = tonemap_for_metrics(image)
+        tonemapped = display[name if name != "colour" else "render"]
+        if bool(region.any()):
+            scores.add(f"{prefix}psnr", float(psnr(tonemapped, display["target"], region)))
+            scores.add(f"{prefix}ssim", 100.0 * float(ssim(tonemapped, display["target"], region)))
+    scores.add("head_excluded_fraction", float(head[mask].float().mean()) if bool(mask.any()) else 0.0)
+    return {k: (v.clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8) for k, v in display.items()}
