@@ -10,12 +10,13 @@ This is the glue every CLI command uses, so that the commands themselves stay th
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from egorelight_cli import console
-from egorelight_cli.artifacts import Artifact, ArtifactWriter, cache_key, is_up_to_date, sha256_file
+from egorelight_cli.artifacts import Artifact, ArtifactWriter, cache_key, cached_sha256_file, is_up_to_date
 from egorelight_cli.config import Config, resolve_config
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.outputs import check_output
@@ -42,6 +43,32 @@ class StageRun:
         ``cuda`` without a GPU, or for a CPU-only stage, is an error)."""
         return resolve_device(self.device, stage=self.stage)
 
+    def cache_key(self, inputs: Sequence[Artifact] = (), source_files: Sequence[str | Path] = (),
+                  options: Mapping[str, Any] | None = None) -> tuple[str, list[dict]]:
+        """(cache key, manifest ``sources`` entries): hash of the stage, its version, the resolved
+        config plus the command's output-affecting ``options``, and the digests of every input."""
+        config = self.config()
+        sources = []
+        for path in source_files:
+            path = Path(path)
+            if not path.is_file():
+                raise EgorelightError("input file not found", path)
+            sources.append({"path": str(path), "digest": cached_sha256_file(path)})
+        digests = [a.digest for a in inputs] + [s["digest"] for s in sources]
+        return cache_key(self.stage, config.version, _keyed_config(config, options), digests), sources
+
+    def up_to_date(self, out: str | Path, kind: str, inputs: Sequence[Artifact] = (),
+                   source_files: Sequence[str | Path] = (), options: Mapping[str, Any] | None = None) -> bool:
+        """The cache check alone (False with ``--force``): a command calls it with its opened (and
+        so verified) inputs before loading anything heavy, and returns at once when it holds."""
+        if self.force:
+            return False
+        key, _ = self.cache_key(inputs, source_files, options)
+        if not is_up_to_date(out, key, kind):
+            return False
+        console.info(f"{out}: up to date, skipped (--force re-runs it)")
+        return True
+
     def produce(
         self,
         out: str | Path,
@@ -49,6 +76,7 @@ class StageRun:
         write: Callable[[ArtifactWriter, Config], None],
         inputs: Sequence[Artifact] = (),
         source_files: Sequence[str | Path] = (),
+        options: Mapping[str, Any] | None = None,
     ) -> Path:
         """Write artifact ``out`` of ``kind`` unless it is up to date.
 
@@ -59,6 +87,8 @@ class StageRun:
             inputs: artifacts read; their digests enter the cache key and the manifest.
             source_files: non-artifact files read (e.g. DDC files); their digests enter the cache
                 key and the manifest's ``sources``.
+            options: the command's options that change the output and are not config keys
+                (``sequence``, flags): they enter the cache key and the manifest's ``config.options``.
         """
         out = Path(out)
         threads, threads_source = (self.threads, "--threads") if self.threads is not None else available_cores()
@@ -66,19 +96,12 @@ class StageRun:
         config = self.config()
         device = self.compute_device()
         check_output(out, kind, [p for a in inputs for p in (a.path, a.manifest_path)] + list(source_files))
-        sources = []
-        for path in source_files:
-            path = Path(path)
-            if not path.is_file():
-                raise EgorelightError("input file not found", path)
-            sources.append({"path": str(path), "digest": sha256_file(path)})
-        digests = [a.digest for a in inputs] + [s["digest"] for s in sources]
-        key = cache_key(self.stage, config.version, config.to_dict(), digests)
-        if not self.force and is_up_to_date(out, key, kind):
-            console.info(f"{out}: up to date, skipped (--force re-runs it)")
+        if self.up_to_date(out, kind, inputs, source_files, options):
             return out
+        key, sources = self.cache_key(inputs, source_files, options)
         started = time.perf_counter()
         with ArtifactWriter(out, kind=kind, stage=self.stage, config=config, inputs=inputs, key=key) as writer:
+            writer.config = _keyed_config(config, options)
             if sources:
                 writer.extra["sources"] = sources
             writer.runtime["device"] = device.type
@@ -90,3 +113,12 @@ class StageRun:
             writer.timing["wall_s"] = round(time.perf_counter() - started, 3)
         console.info(f"{out}: wrote {kind} ({writer.timing['wall_s']:.1f} s)")
         return out
+
+
+def _keyed_config(config: Config, options: Mapping[str, Any] | None) -> dict:
+    """The resolved config as the cache key and the manifest see it, with the command's options
+    (paths as strings) under ``options``."""
+    tree = config.to_dict()
+    if options:
+        tree["options"] = {k: (str(v) if isinstance(v, Path) else v) for k, v in sorted(options.items())}
+    return tree

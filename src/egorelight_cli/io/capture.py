@@ -15,11 +15,14 @@ import json
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from egorelight_cli.errors import EgorelightError
-from egorelight_cli.geometry.cameras import Camera
+
+if TYPE_CHECKING:  # geometry.cameras imports torch: loaded on first use, not by opening a capture
+    from egorelight_cli.geometry.cameras import Camera
 
 CAPTURE_KIND = "capture"
 SEQUENCES = "sequences"
@@ -186,6 +189,8 @@ class Capture:
     @cached_property
     def ego_cameras(self) -> dict[str, Camera]:
         """Intrinsics of every HMD camera by role (extrinsics identity: they are unknown)."""
+        from egorelight_cli.geometry.cameras import Camera
+
         cameras = {}
         for entry in self.hmd.get("cameras", []):
             try:
@@ -205,6 +210,8 @@ class Capture:
     def studio_cameras(self) -> dict[str, Camera]:
         """Every studio camera by name (``role`` studio or tracking in :attr:`studio_camera_roles`)."""
         doc = read_json_file(self.root / "rig" / "studio_cameras.json", "studio camera rig")
+        from egorelight_cli.geometry.cameras import Camera
+
         cameras = {}
         for entry in doc.get("cameras", []):
             try:

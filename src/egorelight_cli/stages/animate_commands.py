@@ -21,21 +21,29 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+from typing import TYPE_CHECKING
+
 import numpy as np
-import torch
 
 from egorelight_cli import console
-from egorelight_cli.artifacts import Artifact, ArtifactWriter
+from egorelight_cli.artifacts import Artifact, ArtifactWriter, open_artifact
 from egorelight_cli.config import Config
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.io.capture import Capture, open_capture, read_reconstructions
 from egorelight_cli.io.mesh_sequence import MeshSequence, export_sequence, save_meshes
-from egorelight_cli.io.motion import Motion, load_motion
+from egorelight_cli.io.motion import MOTION_PAYLOAD, Motion, load_motion
+from egorelight_cli.io.npz import resolve_payload
+from egorelight_cli.io.pointcloud import POINTCLOUD_PAYLOAD
 from egorelight_cli.pipeline import StageRun
-from egorelight_cli.stages.animate import (ANIMATE_MODEL_TYPE, AnimationModel, DepthSettings, NetSettings,
-                                           TrainSettings, build_training_data, evaluate_chamfer, previous_rows,
-                                           train_animation_model)
+from egorelight_cli.stages.character_commands import character_sources, load_character
 from egorelight_cli.structures.character import Character
+
+# torch and the stage module load only past the cache check (importing torch alone takes seconds;
+# an up-to-date `animate` returns in about one)
+if TYPE_CHECKING:
+    import torch
+
+    from egorelight_cli.stages.animate import AnimationModel
 
 PREVIEW_PNG = "preview.png"
 EXPORT_DIR = "export"
@@ -71,10 +79,23 @@ def _load_clouds(path: Path | None, motion: Motion, no_depth: bool) -> tuple[lis
     return clouds, artifact, count
 
 
+def _motion_and_cloud_artifacts(motion_path: Path, pointcloud_path: Path | None,
+                                no_depth: bool) -> tuple[Artifact | None, Artifact | None, list[Path]]:
+    """(motion artifact, point cloud artifact, the lone npz files among the two), read from the
+    manifests only (the arrays load past the cache check); no cloud with ``--no-depth``."""
+    motion_artifact = resolve_payload(motion_path, "motion", MOTION_PAYLOAD, "motion")[1]
+    lone = [] if motion_artifact is not None else [Path(motion_path)]
+    cloud_artifact = None
+    if pointcloud_path is not None and not no_depth:
+        cloud_artifact = resolve_payload(pointcloud_path, "pointcloud", POINTCLOUD_PAYLOAD, "pointcloud")[1]
+        lone += [] if cloud_artifact is not None else [Path(pointcloud_path)]
+    return motion_artifact, cloud_artifact, lone
+
+
 def load_animate_model(path: Path, character: Character, device) -> tuple[AnimationModel, Artifact, dict]:
     """Read a model artifact written by ``train animate`` and bind it to ``character``."""
-    from egorelight_cli.artifacts import open_artifact
     from egorelight_cli.io.model import read_model
+    from egorelight_cli.stages.animate import ANIMATE_MODEL_TYPE, AnimationModel, DepthSettings, NetSettings
 
     artifact = open_artifact(path, kind="model")
     if artifact.single_file:
@@ -109,9 +130,13 @@ class AnimateCommands:
 
     # ------------------------------------------------------------------------------ train
     def train(self, capture_path: Path, sequence: str, motion_path: Path, pointcloud_path: Path | None,
-              character_spec: str, init_path: Path | None, no_depth: bool, out: Path) -> Path:
-        from egorelight_cli.stages.character_commands import load_character
-        from egorelight_cli.stages.ik_commands import character_sources
+              character_spec: str, init_path: Path | None, no_depth: bool, out: Path, resume: bool = False) -> Path:
+        import torch
+
+        from egorelight_cli.nn.training import Checkpoint, checkpoint_beside
+        from egorelight_cli.stages.animate import (ANIMATE_MODEL_TYPE, AnimationModel, DepthSettings, NetSettings,
+                                                   TrainSettings, build_training_data, evaluate_chamfer,
+                                                   train_animation_model)
 
         character, character_artifact = load_character(character_spec)
         capture, capture_artifact = open_capture(capture_path)
@@ -129,13 +154,13 @@ class AnimateCommands:
                                   f"flat-lit multi-view reconstruction in sequence {sequence!r}", seq.root / "recon")
         inputs = [a for a in (capture_artifact, character_artifact, motion_artifact, cloud_artifact) if a is not None]
         sources = character_sources(character_spec, character_artifact) + [seq.recon_path(f) for f in sorted(recon)]
-        sources += [p for p, a in ((motion_path, motion_artifact), (pointcloud_path, cloud_artifact))
-                    if a is None and p is not None and not no_depth]
+        sources += _motion_and_cloud_artifacts(motion_path, pointcloud_path, no_depth)[2]
         init = None
         if init_path is not None:
             init, init_artifact, _ = load_animate_model(init_path, character, self._device())
             inputs.append(init_artifact)
         device = self._device()
+        checkpoint = checkpoint_beside(out)
 
         def write(writer: ArtifactWriter, cfg: Config) -> None:
             from egorelight_cli.io.model import ModelPayload, write_model
@@ -148,10 +173,9 @@ class AnimateCommands:
                                            device=device)
             data = build_training_data(model, motion.theta, motion.frame_ids, clouds, recon, settings)
             before = evaluate_chamfer(model, data, settings, no_depth=no_depth)
-            checkpoint = out.parent / f".{out.name}.checkpoint.pt"
-            curve = train_animation_model(model, data, settings, no_depth=no_depth, checkpoint=checkpoint)
+            curve = train_animation_model(model, data, settings, no_depth=no_depth,
+                                          checkpoint=Checkpoint(checkpoint, writer.cache_key, resume))
             after = evaluate_chamfer(model, data, settings, no_depth=no_depth)
-            checkpoint.unlink(missing_ok=True)
             extra = {"eps_d": model.depth.eps_d, "eps_n": model.depth.eps_n, "num_vertices": character.num_vertices,
                      "num_nodes": character.graph.num_nodes, "no_depth": bool(no_depth), "sequence": sequence,
                      "frames": [int(f) for f in data.frame_ids], "init": str(init_path) if init_path else None}
@@ -164,19 +188,18 @@ class AnimateCommands:
                                    "final_loss": curve[-1]["loss"] if curve else None})
             writer.units.update({"train_chamfer_cm": "cm (normal-filtered two-sided Chamfer, full mesh)"})
 
-        return self.run.produce(out, "model", write, inputs=inputs, source_files=sources)
+        produced = self.run.produce(out, "model", write, inputs=inputs, source_files=sources,
+                                    options={"sequence": sequence, "no_depth": bool(no_depth)})
+        checkpoint.unlink(missing_ok=True)
+        return produced
 
     # ----------------------------------------------------------------------------- animate
     def animate(self, motion_path: Path, pointcloud_path: Path | None, model_path: Path, character_spec: str,
                 capture_path: Path | None, sequence: str, calibration_path: Path | None, no_depth: bool,
                 export: str | None, out: Path) -> Path:
-        from egorelight_cli.stages.character_commands import load_character
-        from egorelight_cli.stages.ik_commands import character_sources
-
         character, character_artifact = load_character(character_spec)
-        motion, motion_artifact = _load_motion(motion_path, character)
-        clouds, cloud_artifact, cloud_frames = _load_clouds(pointcloud_path, motion, no_depth)
-        model, model_artifact, _ = load_animate_model(model_path, character, self._device())
+        motion_artifact, cloud_artifact, lone = _motion_and_cloud_artifacts(motion_path, pointcloud_path, no_depth)
+        model_artifact = open_artifact(model_path, kind="model")
         capture, capture_artifact = open_capture(capture_path) if capture_path is not None else (None, None)
         calibration = calibration_artifact = None
         if calibration_path is not None:
@@ -185,9 +208,15 @@ class AnimateCommands:
             calibration, calibration_artifact = open_calibration(calibration_path)
         inputs = [a for a in (character_artifact, motion_artifact, cloud_artifact, model_artifact, capture_artifact,
                               calibration_artifact) if a is not None]
-        sources = character_sources(character_spec, character_artifact)
-        sources += [p for p, a in ((motion_path, motion_artifact), (pointcloud_path, cloud_artifact))
-                    if a is None and p is not None and not no_depth]
+        sources = character_sources(character_spec, character_artifact) + lone
+        options = {"sequence": sequence, "no_depth": bool(no_depth)}
+        if self.run.up_to_date(out, "meshes", inputs, sources, options):
+            return Path(out)
+        from egorelight_cli.stages.animate import previous_rows
+
+        motion, _ = _load_motion(motion_path, character)
+        clouds, _, cloud_frames = _load_clouds(pointcloud_path, motion, no_depth)
+        model, _, _ = load_animate_model(model_path, character, self._device())
 
         def write(writer: ArtifactWriter, cfg: Config) -> None:
             import time
@@ -213,7 +242,7 @@ class AnimateCommands:
             if not writer.single_file:
                 _write_preview(writer, character, meshes, distances, capture, calibration, sequence, cfg)
 
-        return self.run.produce(out, "meshes", write, inputs=inputs, source_files=sources)
+        return self.run.produce(out, "meshes", write, inputs=inputs, source_files=sources, options=options)
 
 
 # ---------------------------------------------------------------------------------- scoring

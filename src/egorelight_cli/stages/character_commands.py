@@ -107,8 +107,6 @@ def _replace_atomically(tmp: Path, target: Path) -> None:
 
 def _character_paths(spec: str | Path, artifact: Artifact | None) -> list[Path]:
     """Every file a character was read from (an output must not replace any of them)."""
-    from egorelight_cli.stages.ik_commands import character_sources
-
     return [artifact.path, artifact.manifest_path] if artifact is not None else character_sources(str(spec), None)
 
 
@@ -178,3 +176,17 @@ class CharacterCommands:
         finally:
             tmp.unlink(missing_ok=True)
         return out
+
+
+def character_sources(spec: str, artifact: Artifact | None) -> list[Path]:
+    """Files a character came from that are not an artifact (cache keys, provenance)."""
+    if artifact is not None:
+        return []
+    if str(spec) == "default":
+        return [default_character_path()]
+    path = Path(spec)
+    if path.suffix == ".character":
+        from egorelight_cli.io.ddc import ddc_character_files
+
+        return ddc_character_files(path)
+    return [path]

@@ -14,9 +14,9 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-import torch
 
 from egorelight_cli import console
 from egorelight_cli.artifacts import Artifact, ArtifactWriter, open_artifact
@@ -25,7 +25,13 @@ from egorelight_cli.errors import EgorelightError
 from egorelight_cli.io.calibration import Calibration, open_calibration
 from egorelight_cli.io.capture import Capture, frame_file, open_capture
 from egorelight_cli.pipeline import StageRun
-from egorelight_cli.stages import egodepth as ed
+
+# torch and the stage module load only past the cache check, so an up-to-date run returns in
+# well under a second (importing torch alone takes seconds)
+if TYPE_CHECKING:
+    import torch
+
+    from egorelight_cli.stages import egodepth as ed
 
 PREVIEW_PNG = "preview.png"
 POINTCLOUD_PREVIEW_PNG = "preview_pointcloud.png"
@@ -48,6 +54,7 @@ def _prior(backbone: Path | None, device: torch.device):
 def load_depth_model(path: Path, roles) -> tuple[ed.DepthNet, dict, dict, Artifact]:
     """(network, self-occlusion masks by role, model extras, artifact) of a ``train egodepth`` model."""
     from egorelight_cli.io.model import read_model
+    from egorelight_cli.stages import egodepth as ed
 
     artifact = open_artifact(path, kind="model")
     if artifact.single_file:
@@ -74,7 +81,13 @@ class EgodepthCommands:
     run: StageRun
 
     # ------------------------------------------------------------------------------- train
-    def train(self, capture_path: Path, calibration_path: Path, out: Path, backbone: Path | None = None) -> Path:
+    def train(self, capture_path: Path, calibration_path: Path, out: Path, backbone: Path | None = None,
+              resume: bool = False) -> Path:
+        import torch
+
+        from egorelight_cli.nn.training import Checkpoint, checkpoint_beside
+        from egorelight_cli.stages import egodepth as ed
+
         capture, capture_artifact, calibration, calibration_artifact = load_inputs(capture_path, calibration_path)
         cfg = self.run.config()
         roles = tuple(cfg.roles)
@@ -85,7 +98,7 @@ class EgodepthCommands:
         device = self.run.compute_device()
         prior = _prior(backbone, device)  # checks the folder before anything runs
         sources = [backbone / "config.json"] if backbone is not None else []
-        checkpoint = Path(out).parent / f".{Path(out).name}.checkpoint.pt"
+        checkpoint = checkpoint_beside(out)
 
         def write(writer: ArtifactWriter, cfg: Config) -> None:
             from egorelight_cli.io.model import ModelPayload, write_model
@@ -101,7 +114,7 @@ class EgodepthCommands:
             console.info(f"train egodepth: {len(views)} supervised views from {', '.join(names)}")
             started = time.perf_counter()
             model, curve = ed.train_depth_net(views, ray_maps, masks, ed.TrainSettings.from_config(cfg), cfg.net,
-                                              device, checkpoint, prior)
+                                              device, Checkpoint(checkpoint, writer.cache_key, resume), prior)
             writer.timing["train_s"] = round(time.perf_counter() - started, 3)
             writer.metrics.update(ed.fit_report(model, views, ray_maps, masks, prior))
             extra = {"roles": list(roles), "self_masks": {r: torch.from_numpy(m) for r, m in masks.items()},
@@ -121,7 +134,7 @@ class EgodepthCommands:
 
         result = self.run.produce(out, "model", write, inputs=[capture_artifact, calibration_artifact],
                                   source_files=sources)
-        checkpoint.unlink(missing_ok=True)
+        checkpoint.unlink(missing_ok=True)  # only once the output check passed and the model is written
         return result
 
     # ------------------------------------------------------------------------------ predict
@@ -130,18 +143,25 @@ class EgodepthCommands:
         capture, capture_artifact, calibration, calibration_artifact = load_inputs(capture_path, calibration_path)
         cfg = self.run.config()
         method = method or str(cfg.predict.method)
-        if method not in ed.METHODS:
-            raise EgorelightError(f"unknown egodepth method {method!r}; expected one of {', '.join(ed.METHODS)}")
         roles = tuple(cfg.roles)
         sequence = capture.sequence(seq)
-        ed.check_roles(capture, sequence, roles)
         inputs = [capture_artifact, calibration_artifact]
-        model = masks = extra = None
+        sources = [backbone / "config.json"] if backbone is not None else []
+        options = {"sequence": sequence.name}
         if method == "net":
             if model_path is None:
                 raise EgorelightError("egodepth --method net needs --model (a `train egodepth` artifact)")
-            model, masks, extra, model_artifact = load_depth_model(model_path, roles)
-            inputs.append(model_artifact)
+            inputs.append(open_artifact(model_path, kind="model"))
+        if self.run.up_to_date(out, "pointcloud", inputs, sources, options):
+            return Path(out)
+        from egorelight_cli.stages import egodepth as ed
+
+        if method not in ed.METHODS:
+            raise EgorelightError(f"unknown egodepth method {method!r}; expected one of {', '.join(ed.METHODS)}")
+        ed.check_roles(capture, sequence, roles)
+        model = masks = extra = None
+        if method == "net":
+            model, masks, extra, _ = load_depth_model(model_path, roles)
             for role in roles:
                 c = capture.ego_camera(role)
                 if masks[role].shape != (c.height, c.width):
@@ -160,12 +180,12 @@ class EgodepthCommands:
             _predict_sequence(writer, cfg, capture, calibration, sequence, roles, frames, posed, method, model, masks,
                               device, prior)
 
-        return self.run.produce(out, "pointcloud", write, inputs=inputs,
-                                source_files=[backbone / "config.json"] if backbone is not None else [])
+        return self.run.produce(out, "pointcloud", write, inputs=inputs, source_files=sources, options=options)
 
 
 def _predict_sequence(writer: ArtifactWriter, cfg: Config, capture: Capture, calibration: Calibration, sequence,
                       roles, frames: np.ndarray, posed: np.ndarray, method: str, model, masks, device, prior) -> None:
+    from egorelight_cli.stages import egodepth as ed
     from egorelight_cli.io.exr import write_exr
     from egorelight_cli.io.images import write_image
     from egorelight_cli.io.pointcloud import PointCloudSequence, save_pointcloud

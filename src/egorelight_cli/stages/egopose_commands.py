@@ -8,9 +8,9 @@
   the mocap (``validation_*``, works on real captures), and, for a simulated capture whose
   calibration covers ``evaluate_sequence`` (``test``), MPJPE against its ground truth there
   (``test_*``, unseen lighting): the jitter ablation compares these (``--no-jitter``). Every
-  MPJPE comes with the mean-pose baseline (``*_mean_pose_*``). A resumable checkpoint lives next to the output in ``<out>.checkpoint/`` while training
-  (``--resume`` continues from it; without it a stale one is discarded); it is removed once the
-  model is written.
+  MPJPE comes with the mean-pose baseline (``*_mean_pose_*``). A resumable checkpoint lives next to the output in ``.<out>.checkpoint/`` while
+  training (``--resume`` continues from it when it was made with the same cache key; without it an
+  old one is ignored and overwritten); it is removed once the model is written.
 * ``egopose`` writes a keypoints artifact (``keypoints.npz`` + ``per_frame.npz`` with the
   estimates before the temporal module + ``preview.png``); metrics vs
   ``groundtruth/<seq>/keypoints.npz`` when the capture has it.
@@ -22,9 +22,9 @@ import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-import torch
 
 from egorelight_cli.artifacts import Artifact, ArtifactWriter, open_artifact
 from egorelight_cli.config import Config
@@ -32,11 +32,15 @@ from egorelight_cli.errors import EgorelightError
 from egorelight_cli.io.calibration import Calibration, open_calibration
 from egorelight_cli.io.capture import Capture, open_capture
 from egorelight_cli.io.keypoints import read_keypoints_npz, save_keypoints
-from egorelight_cli.nn.egopose_net import EgoPoseNet
 from egorelight_cli.pipeline import StageRun
-from egorelight_cli.stages.egopose import (EGOPOSE_MODEL_TYPE, EgoPoseSettings, TrainResult, evaluate,
-                                           groundtruth_keypoints, load_frames, predict, preview_image, rig_geometry,
-                                           train_egopose)
+
+# torch, the network and the stage module load only past the cache check (importing torch alone
+# takes seconds; an up-to-date `egopose` returns in under one)
+if TYPE_CHECKING:
+    import torch
+
+    from egorelight_cli.nn.egopose_net import EgoPoseNet
+    from egorelight_cli.stages.egopose import EgoPoseSettings, TrainResult
 
 PREVIEW_PNG = "preview.png"
 PER_FRAME_NPZ = "per_frame.npz"
@@ -55,6 +59,8 @@ class EgoPoseModel:
 def load_egopose_model(path: Path) -> tuple[EgoPoseModel, Artifact]:
     """Read an egopose model artifact (kind model, trained by ``train egopose``)."""
     from egorelight_cli.io.model import read_model
+    from egorelight_cli.nn.egopose_net import EgoPoseNet
+    from egorelight_cli.stages.egopose import EGOPOSE_MODEL_TYPE
 
     artifact = open_artifact(path, kind="model")
     if artifact.single_file:
@@ -77,6 +83,8 @@ def load_egopose_model(path: Path) -> tuple[EgoPoseModel, Artifact]:
 
 def read_backbone_weights(path: Path) -> dict[str, torch.Tensor]:
     """A torch state dict (or ``{"state_dict": ...}`` / an egorelight model.pt) of encoder weights."""
+    import torch
+
     if not path.is_file():
         raise EgorelightError("backbone weights not found", path)
     try:
@@ -100,6 +108,10 @@ class EgoPoseCommands:
 
     def train(self, capture_path: Path, calibration_path: Path, out: Path, sequence: str | None = None,
               backbone_weights: Path | None = None, resume: bool = False) -> Path:
+        from egorelight_cli.nn.training import Checkpoint, checkpoint_beside
+        from egorelight_cli.stages.egopose import (EGOPOSE_MODEL_TYPE, EgoPoseSettings, load_frames, rig_geometry,
+                                                   train_egopose)
+
         capture, capture_artifact = open_capture(capture_path)
         calibration, calibration_artifact = open_calibration(calibration_path)
         cfg = self.run.config()
@@ -112,9 +124,8 @@ class EgoPoseCommands:
         backbone = read_backbone_weights(Path(backbone_weights)) if backbone_weights is not None else None
         inputs = [a for a in (capture_artifact, calibration_artifact) if a is not None]
         sources = [info.mocap_path()] + ([Path(backbone_weights)] if backbone_weights is not None else [])
-        checkpoint_dir = Path(str(out).rstrip("/") + ".checkpoint")
-        if not resume and checkpoint_dir.exists():
-            shutil.rmtree(checkpoint_dir)
+        checkpoint_dir = checkpoint_beside(out, "")
+        options = {"sequence": sequence}
 
         def write(writer: ArtifactWriter, cfg: Config) -> None:
             from egorelight_cli.io.model import ModelPayload, write_model
@@ -125,7 +136,8 @@ class EgoPoseCommands:
             rig = rig_geometry(capture, calibration)
             frames = load_frames(capture, calibration, sequence, int(cfg.input_size), only_content=True)
             started = time.perf_counter()
-            result = train_egopose(frames, mocap, rig, settings, checkpoint_dir, backbone)
+            result = train_egopose(frames, mocap, rig, settings, Checkpoint(checkpoint_dir, writer.cache_key, resume),
+                                   backbone)
             writer.timing["train_s"] = round(time.perf_counter() - started, 2)
             extra = {"input_size": int(cfg.input_size), "training_sequence": sequence,
                      "mean_pose_heading": result.mean_pose_heading.tolist(), "roles": ["down_left", "down_right"],
@@ -138,7 +150,7 @@ class EgoPoseCommands:
             writer.metrics.update(_training_fit(result, frames, mocap, rig, settings))
             writer.metrics.update(_held_out_metrics(capture, calibration, result, rig, settings))
 
-        produced = self.run.produce(out, "model", write, inputs=inputs, source_files=sources)
+        produced = self.run.produce(out, "model", write, inputs=inputs, source_files=sources, options=options)
         if checkpoint_dir.exists():
             shutil.rmtree(checkpoint_dir)
         return produced
@@ -146,9 +158,15 @@ class EgoPoseCommands:
     def egopose(self, capture_path: Path, calibration_path: Path, model_path: Path, sequence: str, out: Path) -> Path:
         capture, capture_artifact = open_capture(capture_path)
         calibration, calibration_artifact = open_calibration(calibration_path)
-        model, model_artifact = load_egopose_model(model_path)
         capture.sequence(sequence).require_stream("ego")
-        inputs = [a for a in (capture_artifact, calibration_artifact, model_artifact) if a is not None]
+        inputs = [a for a in (capture_artifact, calibration_artifact, open_artifact(model_path, kind="model"))
+                  if a is not None]
+        options = {"sequence": sequence}
+        if self.run.up_to_date(out, "keypoints", inputs, options=options):
+            return Path(out)
+        model, _ = load_egopose_model(model_path)
+        from egorelight_cli.stages.egopose import (evaluate, groundtruth_keypoints, load_frames, predict, preview_image,
+                                                   rig_geometry)
 
         def write(writer: ArtifactWriter, cfg: Config) -> None:
             rig = rig_geometry(capture, calibration)
@@ -179,11 +197,13 @@ class EgoPoseCommands:
             write_image(writer.path(PREVIEW_PNG), preview_image(capture, frames, rig, prediction, truth,
                                                                 int(cfg.preview.frames), int(cfg.preview.tile)))
 
-        return self.run.produce(out, "keypoints", write, inputs=inputs)
+        return self.run.produce(out, "keypoints", write, inputs=inputs, options=options)
 
 
 def _training_fit(result: TrainResult, frames, mocap, rig, settings: EgoPoseSettings) -> dict:
     """MPJPE (cm) to the mocap on the frames trained on, and the mean-pose baseline there."""
+    from egorelight_cli.stages.egopose import evaluate, predict
+
     frames = frames.select(np.nonzero(np.isin(frames.frame_ids, result.frame_ids))[0])
     prediction = predict(result.net, frames, rig, float(settings.cfg.confidence_sigma_m))
     metrics = evaluate(prediction, frames, mocap, result.mean_pose_heading, prefix="train_")
@@ -193,6 +213,8 @@ def _training_fit(result: TrainResult, frames, mocap, rig, settings: EgoPoseSett
 def _held_out_metrics(capture: Capture, calibration: Calibration, result: TrainResult, rig,
                       settings: EgoPoseSettings) -> dict:
     """Scores on ``evaluate_sequence`` (unseen lighting) when the capture has its ground truth."""
+    from egorelight_cli.stages.egopose import evaluate, groundtruth_keypoints, load_frames, predict
+
     sequence = str(settings.cfg.evaluate_sequence)
     if not sequence or sequence not in capture.sequence_names() or sequence not in calibration.head_poses:
         return {}

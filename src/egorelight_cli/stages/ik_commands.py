@@ -35,6 +35,7 @@ from egorelight_cli.errors import EgorelightError
 from egorelight_cli.io.keypoints import Keypoints, load_keypoints
 from egorelight_cli.io.motion import Motion, load_motion, save_motion
 from egorelight_cli.pipeline import StageRun
+from egorelight_cli.stages.character_commands import character_sources
 from egorelight_cli.stages.ik import (IK_MODEL_TYPE, IKModel, IKResult, IKSettings, default_ik_model,
                                       fit_global_scale, fit_metrics, fitted_keypoints, gt_metrics, scale_keypoints,
                                       solve_ik, train_ik_model)
@@ -140,22 +141,6 @@ def _artifact_kind(path: Path) -> str | None:
             raise EgorelightError("not a finished egorelight artifact (directory has no manifest.json)", path)
         return None
     return open_artifact(path).kind
-
-
-def character_sources(spec: str, artifact: Artifact | None) -> list[Path]:
-    """Files a character came from that are not an artifact (cache keys, provenance)."""
-    from egorelight_cli.io.character import default_character_path
-
-    if artifact is not None:
-        return []
-    if str(spec) == "default":
-        return [default_character_path()]
-    path = Path(spec)
-    if path.suffix == ".character":
-        from egorelight_cli.io.ddc import ddc_character_files
-
-        return ddc_character_files(path)
-    return [path]
 
 
 # ----------------------------------------------------------------------------------- models
