@@ -85,8 +85,7 @@ class GeoliftCommands:
 
     # ------------------------------------------------------------------------------- train
     def train(self, capture_path: Path, meshes_path: Path, character_spec: str, out: Path) -> Path:
-        from egorelight_cli.stages.character_commands import load_character
-        from egorelight_cli.stages.ik_commands import character_sources
+        from egorelight_cli.stages.character_commands import character_sources, load_character
 
         cfg = self.run.config()
         character, character_artifact = load_character(character_spec)
@@ -149,8 +148,7 @@ class GeoliftCommands:
     # ------------------------------------------------------------------------------ predict
     def predict(self, meshes_path: Path, model_path: Path, character_spec: str, capture_path: Path | None,
                 seq: str, out: Path) -> Path:
-        from egorelight_cli.stages.character_commands import load_character
-        from egorelight_cli.stages.ik_commands import character_sources
+        from egorelight_cli.stages.character_commands import character_sources, load_character
 
         character, character_artifact = load_character(character_spec)
         meshes, meshes_artifact = load_character_meshes(meshes_path, character)
