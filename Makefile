@@ -160,11 +160,34 @@ $(SUBJECT)/uvmaps/%/manifest.json: $(SUBJECT)/meshes/%/manifest.json $(GEOLIFT_M
 	$(EGO) $(EGOFLAGS) geolift --meshes $(SUBJECT)/meshes/$* --model $(SUBJECT)/models/geolift \
 		--character $(SUBJECT)/character --capture $(SUBJECT)/capture --seq $* --out $(SUBJECT)/uvmaps/$*
 
+# ---------------------------------------------------------------- relight (Sec. relightable avatar)
+# DiffuseNet + SpecularNet train on the HDR-lit frames of RELIGHT_TRAIN_SEQ (student meshes and their
+# uvmaps) and render any sequence's held-out cameras under its own lighting (renders/<seq>).
+RELIGHT_MODEL := $(SUBJECT)/models/relight/manifest.json
+RELIGHT_TRAIN_SEQ ?= relight_train
+
+$(SUBJECT)/uvmaps_student/%/manifest.json: $(SUBJECT)/meshes_student/%/manifest.json $(GEOLIFT_MODEL) $(CHARACTER) \
+		$(CAPTURE)
+	$(EGO) $(EGOFLAGS) geolift --meshes $(SUBJECT)/meshes_student/$* --model $(SUBJECT)/models/geolift \
+		--character $(SUBJECT)/character --capture $(SUBJECT)/capture --seq $* --out $(SUBJECT)/uvmaps_student/$*
+
+$(RELIGHT_MODEL): $(CAPTURE) $(CHARACTER) $(SUBJECT)/meshes_student/$(RELIGHT_TRAIN_SEQ)/manifest.json \
+		$(SUBJECT)/uvmaps_student/$(RELIGHT_TRAIN_SEQ)/manifest.json
+	$(EGO) $(EGOFLAGS) train relight --set train.sequence=$(RELIGHT_TRAIN_SEQ) --capture $(SUBJECT)/capture \
+		--meshes $(SUBJECT)/meshes_student/$(RELIGHT_TRAIN_SEQ) --uvmaps $(SUBJECT)/uvmaps_student/$(RELIGHT_TRAIN_SEQ) \
+		--character $(SUBJECT)/character --out $(SUBJECT)/models/relight
+
+$(SUBJECT)/renders/%/manifest.json: $(SUBJECT)/meshes/%/manifest.json $(SUBJECT)/uvmaps/%/manifest.json \
+		$(RELIGHT_MODEL) $(CHARACTER) $(CAPTURE)
+	$(EGO) $(EGOFLAGS) relight --capture $(SUBJECT)/capture --meshes $(SUBJECT)/meshes/$* --uvmaps $(SUBJECT)/uvmaps/$* \
+		--model $(SUBJECT)/models/relight --character $(SUBJECT)/character --seq $* --out $(SUBJECT)/renders/$*
+
 # keep intermediate per-sequence artifacts (make would delete pattern-rule intermediates)
 .SECONDARY:
 
 subject: $(CAPTURE) $(CHARACTER) $(PREVIEWS)/character.png $(CALIBRATION) \
-	$(SUBJECT)/meshes/$(SEQ)/manifest.json $(ANIMATE_STUDENT) $(SUBJECT)/uvmaps/$(SEQ)/manifest.json
+	$(SUBJECT)/meshes/$(SEQ)/manifest.json $(ANIMATE_STUDENT) $(SUBJECT)/uvmaps/$(SEQ)/manifest.json \
+	$(SUBJECT)/renders/$(SEQ)/manifest.json
 
 demo: subject
 	@echo
