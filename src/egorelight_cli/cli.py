@@ -222,6 +222,10 @@ def ik_command(ctx: click.Context, input_path: Path, character: str, model_path:
     _ik_commands(ctx, solver).ik(input_path, character, model_path, gt_path, out)
 
 
+RESUME_HELP = ("Continue an interrupted training run from its checkpoint (only one made with the same inputs, "
+               "config and options; otherwise an error). Without it an old checkpoint is ignored and replaced.")
+
+
 @cli.group("train")
 def train_group() -> None:
     """Fit the learned model of a stage (writes a model artifact)."""
@@ -272,7 +276,7 @@ def egopose_command(ctx: click.Context, capture: Path, calibration: Path, model_
 @click.option("--no-jitter", is_flag=True, help="Train without colour jitter (the paper's ablation).")
 @click.option("--backbone-weights", type=click.Path(path_type=Path), default=None,
               help="Pretrained encoder weights (torch state dict); default: train from scratch.")
-@click.option("--resume", is_flag=True, help="Continue an interrupted training run from its checkpoint.")
+@click.option("--resume", is_flag=True, help=RESUME_HELP)
 @common_options
 @click.pass_context
 def train_egopose(ctx: click.Context, capture: Path, calibration: Path, out: Path, sequence: str | None,
@@ -294,11 +298,13 @@ def _egodepth_commands(ctx: click.Context):
 @click.option("--backbone", type=click.Path(path_type=Path, file_okay=False), default=None,
               help="Local Depth-Anything-V2 folder (transformers format) used as an input prior.")
 @click.option("--out", required=True, type=click.Path(path_type=Path), help="Model artifact directory.")
+@click.option("--resume", is_flag=True, help=RESUME_HELP)
 @common_options
 @click.pass_context
-def train_egodepth(ctx: click.Context, capture: Path, calibration: Path, backbone: Path | None, out: Path) -> None:
+def train_egodepth(ctx: click.Context, capture: Path, calibration: Path, backbone: Path | None, out: Path,
+                   resume: bool) -> None:
     """Fit the depth network to the ego_train sequences, supervised by the reconstructions."""
-    _egodepth_commands(ctx).train(capture, calibration, out, backbone)
+    _egodepth_commands(ctx).train(capture, calibration, out, backbone, resume)
 
 
 @cli.command("egodepth")
@@ -339,12 +345,14 @@ def _animate_commands(ctx: click.Context):
               help="Start from this animate model (e.g. the depth-agnostic student).")
 @click.option("--no-depth", is_flag=True, help="Train with xi = 0 (depth-agnostic student).")
 @click.option("--out", required=True, type=click.Path(path_type=Path), help="Model artifact directory.")
+@click.option("--resume", is_flag=True, help=RESUME_HELP)
 @common_options
 @click.pass_context
 def train_animate(ctx: click.Context, capture: Path, seq: str, motion_path: Path, pointcloud_path: Path | None,
-                  character: str, init_path: Path | None, no_depth: bool, out: Path) -> None:
+                  character: str, init_path: Path | None, no_depth: bool, out: Path, resume: bool) -> None:
     """Fit AnimationNet to a sequence's multi-view reconstructions (normal-filtered Chamfer + ARAP + offset terms)."""
-    _animate_commands(ctx).train(capture, seq, motion_path, pointcloud_path, character, init_path, no_depth, out)
+    _animate_commands(ctx).train(capture, seq, motion_path, pointcloud_path, character, init_path, no_depth, out,
+                                 resume)
 
 
 @cli.command("animate")
@@ -410,6 +418,48 @@ def geolift_command(ctx: click.Context, meshes_path: Path, model_path: Path, cha
                     seq: str, out: Path) -> None:
     """Tracked meshes -> per-frame UV normal map, flat-lit texture and lighting features (uvmaps)."""
     _geolift_commands(ctx).predict(meshes_path, model_path, character, capture, seq, out)
+
+
+# ------------------------------------------------------------------------------- relight
+def _relight_commands(ctx: click.Context):
+    from egorelight_cli.stages.relight_commands import RelightCommands
+
+    return RelightCommands(_stage_run(ctx, "relight"))
+
+
+@train_group.command("relight")
+@click.option("--capture", required=True, type=click.Path(path_type=Path), help="Capture (HDR-lit studio frames).")
+@click.option("--meshes", "meshes_path", required=True, type=click.Path(path_type=Path),
+              help="Tracked meshes of train.sequence (meshes_student/relight_train).")
+@click.option("--uvmaps", "uvmaps_path", required=True, type=click.Path(path_type=Path),
+              help="geolift uvmaps of the same meshes, with the sequence's lighting features.")
+@click.option("--character", default="default", show_default=True, help="Character artifact, .npz, .character or 'default'.")
+@click.option("--out", required=True, type=click.Path(path_type=Path), help="Model artifact directory.")
+@common_options
+@click.pass_context
+def train_relight(ctx: click.Context, capture: Path, meshes_path: Path, uvmaps_path: Path, character: str,
+                  out: Path) -> None:
+    """Fit DiffuseNet + SpecularNet (one-to-many attention) through the Gaussian renderer."""
+    _relight_commands(ctx).train(capture, meshes_path, uvmaps_path, character, out)
+
+
+@cli.command("relight")
+@click.option("--capture", required=True, type=click.Path(path_type=Path), help="Capture (cameras, lighting, images).")
+@click.option("--meshes", "meshes_path", required=True, type=click.Path(path_type=Path), help="Meshes of the sequence.")
+@click.option("--uvmaps", "uvmaps_path", required=True, type=click.Path(path_type=Path), help="geolift uvmaps of them.")
+@click.option("--model", "model_path", required=True, type=click.Path(path_type=Path), help="relight model (train relight).")
+@click.option("--character", default="default", show_default=True, help="Character artifact, .npz, .character or 'default'.")
+@click.option("--seq", "--sequence", "seq", default="test", show_default=True, help="Sequence to relight.")
+@click.option("--cameras", type=click.Choice(["held-out", "all"]), default="held-out", show_default=True,
+              help="Render into the held-out studio cameras or into all of them.")
+@click.option("--out", required=True, type=click.Path(path_type=Path), help="renders artifact directory.")
+@common_options
+@click.pass_context
+def relight_command(ctx: click.Context, capture: Path, meshes_path: Path, uvmaps_path: Path, model_path: Path,
+                    character: str, seq: str, cameras: str, out: Path) -> None:
+    """Render the relightable avatar under a sequence's lighting and score it against the captured images."""
+    _relight_commands(ctx).predict(capture, meshes_path, uvmaps_path, model_path, character, seq, cameras == "all",
+                                   out)
 
 
 # ---------------------------------------------------------------------------------- calibrate
