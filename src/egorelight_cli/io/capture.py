@@ -12,6 +12,7 @@ Frame ids: ``studio``, ``masks``, ``normals``, ``recon`` and ``mocap`` files are
 from __future__ import annotations
 
 import json
+from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
@@ -277,11 +278,24 @@ def read_reconstructions(seq: SequenceInfo, frame_ids) -> dict[int, tuple[np.nda
     return out
 
 
-def open_capture(path: str | Path) -> tuple[Capture, "Artifact"]:  # noqa: F821
-    """Open a capture artifact (its manifest is checked and becomes the stage's cache-key input)."""
+def open_capture(path: str | Path, sequences: Sequence[str] | None = None) -> tuple[Capture, "Artifact"]:  # noqa: F821
+    """Open a capture artifact (its manifest is checked and becomes the stage's cache-key input).
+
+    Every payload's sha256 is checked against the manifest; with ``sequences`` only those of the
+    rig, the environment maps and the named sequences (and their ground truth), for a stage that
+    reads no other sequence (a cpu-preset capture holds about 300 MB in 5000 files).
+    """
     from egorelight_cli.artifacts import open_artifact
 
-    artifact = open_artifact(path, kind=CAPTURE_KIND)
+    artifact = open_artifact(path, kind=CAPTURE_KIND, verify=sequences is None)
+    if sequences is not None:
+        per_sequence = (SEQUENCES, "groundtruth")
+
+        def read_by_stage(rel: str) -> bool:
+            parts = rel.split("/")
+            return parts[0] not in per_sequence or len(parts) < 3 or parts[1] in sequences
+
+        artifact.verify(only=read_by_stage)
     if artifact.single_file:
         raise EgorelightError("a capture is a directory artifact", path)
     return Capture(artifact.root), artifact

@@ -200,7 +200,7 @@ class AnimateCommands:
         character, character_artifact = load_character(character_spec)
         motion_artifact, cloud_artifact, lone = _motion_and_cloud_artifacts(motion_path, pointcloud_path, no_depth)
         model_artifact = open_artifact(model_path, kind="model")
-        capture, capture_artifact = open_capture(capture_path) if capture_path is not None else (None, None)
+        capture, capture_artifact = open_capture(capture_path, [sequence]) if capture_path is not None else (None, None)
         calibration = calibration_artifact = None
         if calibration_path is not None:
             from egorelight_cli.io.calibration import open_calibration

@@ -37,8 +37,9 @@ PREVIEW_PNG = "preview.png"
 POINTCLOUD_PREVIEW_PNG = "preview_pointcloud.png"
 
 
-def load_inputs(capture_path: Path, calibration_path: Path) -> tuple[Capture, Artifact, Calibration, Artifact]:
-    capture, capture_artifact = open_capture(capture_path)
+def load_inputs(capture_path: Path, calibration_path: Path,
+                sequences: list[str] | None = None) -> tuple[Capture, Artifact, Calibration, Artifact]:
+    capture, capture_artifact = open_capture(capture_path, sequences)
     calibration, calibration_artifact = open_calibration(calibration_path)
     return capture, capture_artifact, calibration, calibration_artifact
 
@@ -140,7 +141,7 @@ class EgodepthCommands:
     # ------------------------------------------------------------------------------ predict
     def predict(self, capture_path: Path, calibration_path: Path, model_path: Path | None, seq: str, out: Path,
                 method: str | None = None, backbone: Path | None = None) -> Path:
-        capture, capture_artifact, calibration, calibration_artifact = load_inputs(capture_path, calibration_path)
+        capture, capture_artifact, calibration, calibration_artifact = load_inputs(capture_path, calibration_path, [seq])
         cfg = self.run.config()
         method = method or str(cfg.predict.method)
         roles = tuple(cfg.roles)

@@ -156,7 +156,7 @@ class EgoPoseCommands:
         return produced
 
     def egopose(self, capture_path: Path, calibration_path: Path, model_path: Path, sequence: str, out: Path) -> Path:
-        capture, capture_artifact = open_capture(capture_path)
+        capture, capture_artifact = open_capture(capture_path, [sequence])
         calibration, calibration_artifact = open_calibration(calibration_path)
         capture.sequence(sequence).require_stream("ego")
         inputs = [a for a in (capture_artifact, calibration_artifact, open_artifact(model_path, kind="model"))
