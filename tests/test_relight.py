@@ -56,7 +56,7 @@ def test_relight_renders_held_out_cameras_and_scores_them(tiny_capture, relight_
     out = tmp_path / "renders"
     code = _main("--preset", "tiny", "-q", "relight", "--capture", tiny_capture, "--meshes",
                  tiny_capture / "groundtruth" / "test" / "meshes.npz", "--uvmaps", relight_inputs / "uvmaps_test",
-                 "--model", relight_model, "--seq", "test", "--out", out)
+                 "--model", relight_model, "--seq", "test", "--export", "ply", "--out", out)
     assert code == 0
     manifest = json.loads((out / "manifest.json").read_text())
     sequence = json.loads((tiny_capture / "sequences" / "test" / "sequence.json").read_text())
@@ -72,6 +72,10 @@ def test_relight_renders_held_out_cameras_and_scores_them(tiny_capture, relight_
     for key in ("psnr", "ssim", "lambert_psnr", "baked_psnr"):
         assert np.isfinite(manifest["metrics"][key]), key
     assert 0 < manifest["metrics"]["head_excluded_fraction"] < 0.5
+    from egorelight_cli.io.gaussian_ply import read_gaussian_ply
+
+    gaussians, rgb = read_gaussian_ply(out / "gaussians" / exrs[0].name.replace(".exr", ".ply"))
+    assert len(gaussians) > 100 and (rgb >= 0).all() and (rgb <= 1).all()
 
 
 def test_relight_needs_lighting_features(tiny_capture, relight_inputs, relight_model, tmp_path, capsys):

@@ -452,12 +452,16 @@ def train_relight(ctx: click.Context, capture: Path, meshes_path: Path, uvmaps_p
 @click.option("--seq", "--sequence", "seq", default="test", show_default=True, help="Sequence to relight.")
 @click.option("--cameras", type=click.Choice(["held-out", "all"]), default="held-out", show_default=True,
               help="Render into the held-out studio cameras or into all of them.")
+@click.option("--export", type=click.Choice(["none", "ply"]), default=None,
+              help="Also write each frame's Gaussians as a standard 3DGS PLY under gaussians/.")
 @click.option("--out", required=True, type=click.Path(path_type=Path), help="renders artifact directory.")
 @common_options
 @click.pass_context
 def relight_command(ctx: click.Context, capture: Path, meshes_path: Path, uvmaps_path: Path, model_path: Path,
-                    character: str, seq: str, cameras: str, out: Path) -> None:
+                    character: str, seq: str, cameras: str, export: str | None, out: Path) -> None:
     """Render the relightable avatar under a sequence's lighting and score it against the captured images."""
+    if export is not None:  # a config key, so it enters the cache key and the manifest
+        _options(ctx).sets.append(f"export={export}")
     _relight_commands(ctx).predict(capture, meshes_path, uvmaps_path, model_path, character, seq, cameras == "all",
                                    out)
 

@@ -42,6 +42,7 @@ from egorelight_cli.render.uv_gaussians import (
     texel_footprint,
     texel_gaussians,
 )
+from egorelight_cli.structures.gaussians import GaussianSet
 
 MODEL_STAGE = "relight"
 LN2 = float(np.log(2.0))  # softplus(0): the diffuse gain of an untrained DiffuseNet is 1
@@ -130,27 +131,44 @@ def low_resolution_raster(face_uvs: np.ndarray, resolution: int, level: int) -> 
     return rasterize_uv(face_uvs, resolution // 2**level)
 
 
-def render_relit(model: RelightModel, frame: RelightFrame, coverage: torch.Tensor, camera: Camera,
-                 rays: torch.Tensor, valid: torch.Tensor, light_scale: float = 1.0,
-                 extra_passes: dict[str, torch.Tensor] | None = None,
-                 settings: TexelGaussianSettings = TexelGaussianSettings()) -> tuple[GaussianRender, torch.Tensor]:
-    """Render the avatar of one frame into ``camera``; returns the render and ``L_reg``.
+@dataclass
+class RelitAvatar:
+    """The avatar of one frame for one view: Gaussians (colour ``c_diff + c_spec``), the diffuse
+    and specular colours (N,3) and ``L_reg``."""
 
-    The render's colour is ``c_diff + c_spec``; passes ``diffuse`` (``c_diff``), ``specular`` and
-    any ``extra_passes`` (per covered texel (N,C) colours, e.g. a baseline's).
-    """
+    gaussians: GaussianSet
+    diffuse: torch.Tensor
+    specular: torch.Tensor
+    regulariser: torch.Tensor
+
+
+def relit_avatar(model: RelightModel, frame: RelightFrame, coverage: torch.Tensor, rays: torch.Tensor,
+                 valid: torch.Tensor, light_scale: float = 1.0,
+                 settings: TexelGaussianSettings = TexelGaussianSettings()) -> RelitAvatar:
+    """Run both networks on a frame (``light_scale`` scales chi and the rays' intensities)."""
     maps = frame.maps.clone()
     maps[7:10] *= light_scale
     raw_map = model.diffuse(maps[None])[0]
-    spec_map = model.specular(maps[None, :7], (rays * torch.tensor([1, 1, 1, light_scale, light_scale,
-                                                                     light_scale]))[None], valid[None])[0]
+    ray_scale = torch.tensor([1.0, 1.0, 1.0, light_scale, light_scale, light_scale])
+    spec_map = model.specular(maps[None, :7], (rays * ray_scale)[None], valid[None])[0]
     raw = raw_map.permute(1, 2, 0)[coverage]
     c_spec = spec_map.permute(1, 2, 0)[coverage]
     c_diff = frame.lambert * light_scale * diffuse_colour(raw) / LN2  # starts at the Lambert relighting
     gaussians, offsets = texel_gaussians(frame.points, frame.footprint, raw, c_diff + c_spec, settings)
-    passes = {"diffuse": c_diff, "specular": c_spec, **(extra_passes or {})}
-    render = render_gaussians(gaussians, camera, passes=passes)
-    return render, gaussian_regulariser(offsets, gaussians.scales, frame.footprint)
+    return RelitAvatar(gaussians, c_diff, c_spec, gaussian_regulariser(offsets, gaussians.scales, frame.footprint))
+
+
+def render_relit(model: RelightModel, frame: RelightFrame, coverage: torch.Tensor, camera: Camera,
+                 rays: torch.Tensor, valid: torch.Tensor, light_scale: float = 1.0,
+                 extra_passes: dict[str, torch.Tensor] | None = None) -> tuple[GaussianRender, RelitAvatar]:
+    """Render the avatar of one frame into ``camera`` (``rays`` computed for that camera).
+
+    The render's colour is ``c_diff + c_spec``; passes ``diffuse`` (``c_diff``), ``specular`` and
+    any ``extra_passes`` (per covered texel (N,C) colours, e.g. a baseline's).
+    """
+    avatar = relit_avatar(model, frame, coverage, rays, valid, light_scale)
+    passes = {"diffuse": avatar.diffuse, "specular": avatar.specular, **(extra_passes or {})}
+    return render_gaussians(avatar.gaussians, camera, passes=passes), avatar
 
 
 def relight_loss(render: GaussianRender, target: torch.Tensor, mask: torch.Tensor,

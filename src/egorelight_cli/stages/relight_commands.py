@@ -29,6 +29,7 @@ from egorelight_cli.io.capture import Capture, frame_file, open_capture
 from egorelight_cli.io.exr import read_exr, write_exr_layers
 from egorelight_cli.io.images import read_image, write_image
 from egorelight_cli.nn.training import train
+from egorelight_cli.render.image_metrics import tonemap_for_metrics
 from egorelight_cli.pipeline import StageRun
 from egorelight_cli.render.lighting import CaptureEnvmaps, light_intensities
 from egorelight_cli.render.lightstage import LightStage
@@ -103,8 +104,9 @@ def baseline_passes(frame: rl.RelightFrame, coverage: torch.Tensor) -> dict[str,
 
 
 def evaluate(model: rl.RelightModel, data: RelightData, views: list[tuple[int, str]], writer: ArtifactWriter | None,
-             preview_count: int = 0) -> tuple[dict, list[np.ndarray]]:
-    """Render and score ``views``; write EXR/PNG renders when ``writer`` is given."""
+             preview_count: int = 0, export_ply: bool = False) -> tuple[dict, list[np.ndarray]]:
+    """Render and score ``views``; write EXR/PNG renders when ``writer`` is given, and with
+    ``export_ply`` each frame's Gaussians (as seen by its first view) as a 3DGS PLY."""
     scores, previews = RelightScores(), []
     preview_at = set(np.linspace(0, len(views) - 1, min(preview_count, len(views))).round().astype(int).tolist()) \
         if preview_count and views else set()
@@ -114,8 +116,8 @@ def evaluate(model: rl.RelightModel, data: RelightData, views: list[tuple[int, s
             rays, valid = data.view_rays(f, camera_name)
             head = torch.from_numpy(frame.head.astype(np.float32))[:, None]
             extra = {**baseline_passes(frame, data.coverage), "head": head}
-            render, _ = rl.render_relit(model, frame, data.coverage, data.capture.studio_cameras[camera_name], rays,
-                                        valid, extra_passes=extra)
+            render, avatar = rl.render_relit(model, frame, data.coverage, data.capture.studio_cameras[camera_name],
+                                             rays, valid, extra_passes=extra)
             target, mask = data.target(f, camera_name)
             tonemapped = score_view(scores, render, target, mask)
             if writer is not None:
@@ -124,6 +126,11 @@ def evaluate(model: rl.RelightModel, data: RelightData, views: list[tuple[int, s
                     "": render.colour.numpy(), "diffuse": render.passes["diffuse"].numpy(),
                     "specular": render.passes["specular"].numpy(), "alpha": render.alpha.numpy()[..., None]})
                 write_image(writer.path(f"{stem}.png"), tonemapped["render"])
+                ply = writer.path(f"gaussians/{frame_file(f, '.ply')}")
+                if export_ply and not ply.exists():
+                    from egorelight_cli.io.gaussian_ply import write_gaussian_ply
+
+                    write_gaussian_ply(ply, avatar.gaussians, rgb=tonemap_for_metrics(avatar.gaussians.colours).numpy())
             if i in preview_at:
                 previews.append(np.concatenate([tonemapped[k] for k in ("target", "render", "lambert", "baked")], 1))
     return scores.metrics(), previews
@@ -184,10 +191,10 @@ class RelightCommands:
                 f, camera_name = train_views[int(rng.integers(len(train_views)))]
                 scale = float(rng.uniform(0, 1)) if k >= steps // 2 and rng.uniform() < float(t.augment_p) else 1.0
                 rays, valid = data.view_rays(f, camera_name)
-                render, regulariser = rl.render_relit(model, data.frame(f), data.coverage,
-                                                      data.capture.studio_cameras[camera_name], rays, valid, scale)
+                render, avatar = rl.render_relit(model, data.frame(f), data.coverage,
+                                                 data.capture.studio_cameras[camera_name], rays, valid, scale)
                 target, mask = data.target(f, camera_name)
-                return rl.relight_loss(render, target * scale, mask, regulariser)
+                return rl.relight_loss(render, target * scale, mask, avatar.regulariser)
 
             started = time.perf_counter()
             curve = train(model, optimizer, step, steps, checkpoint=checkpoint, log_every=int(t.log_every),
@@ -239,7 +246,7 @@ class RelightCommands:
         def write(writer: ArtifactWriter, cfg: Config) -> None:
             if writer.single_file:
                 raise EgorelightError("a renders artifact is a directory: give --out a directory name", out)
-            metrics, previews = evaluate(model, data, views, writer, int(cfg.preview.frames))
+            metrics, previews = evaluate(model, data, views, writer, int(cfg.preview.frames), cfg.export == "ply")
             writer.metrics.update({"sequence": seq, "cameras": cameras, "views": len(views), **metrics})
             if previews:
                 write_image(writer.path(PREVIEW_PNG), np.concatenate(previews, 0))
