@@ -47,7 +47,8 @@ class RelightData:
 
     def __init__(self, capture: Capture, sequence, meshes, uvmaps: Artifact, character, resolution: int,
                  attention_level: int, rays: int):
-        self.capture, self.sequence, self.meshes, self.uvmaps, self.character = capture, sequence, meshes, uvmaps, character
+        self.capture, self.sequence, self.meshes = capture, sequence, meshes
+        self.uvmaps, self.character = uvmaps, character
         self.raster = rasterize_uv(character.face_uvs, resolution)
         self.low_raster = rl.low_resolution_raster(character.face_uvs, resolution, attention_level)
         self.coverage = torch.from_numpy(self.raster.coverage)
@@ -61,12 +62,16 @@ class RelightData:
 
     def frame(self, frame_id: int) -> rl.RelightFrame:
         if frame_id not in self._frames:
-            exr = read_exr(self.uvmaps.root / map_path(frame_id))
+            path = self.uvmaps.root / map_path(frame_id)
+            exr = read_exr(path)
             if exr.shape != self.raster.resolution:
                 raise EgorelightError(f"uvmaps are {exr.shape[1]}x{exr.shape[0]}, the model works at "
                                       f"{self.raster.resolution[1]}x{self.raster.resolution[0]}", self.uvmaps.root)
-            maps = {name: exr.layer(name) for name in UVMAP_LAYERS
-                    if any(channel.startswith(f"{name}.") for channel in exr.channels)}
+            missing = [n for n in UVMAP_LAYERS if not any(c.startswith(f"{n}.") for c in exr.channels)]
+            if missing:
+                raise EgorelightError(f"uvmaps frame lacks the {', '.join(missing)} layer(s) (run geolift with "
+                                      "--capture for the lighting features)", path)
+            maps = {name: exr.layer(name) for name in UVMAP_LAYERS}
             intensities = light_intensities(self.lightstage, self.sequence.light_entry(frame_id), self.envmaps)
             vertices = self.meshes.vertices[self.meshes.index_of(frame_id)].astype(np.float64)
             self._frames[frame_id] = rl.frame_inputs(self.raster, maps, vertices, self.character.faces,
