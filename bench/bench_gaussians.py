@@ -23,6 +23,7 @@ from egorelight_cli.geometry.rotations import matrix_to_quaternion
 from egorelight_cli.render.gaussians import render_gaussians
 from egorelight_cli.render.gaussians_reference import render_gaussians_dense
 from egorelight_cli.structures.gaussians import GaussianSet
+from timing import best_time
 
 WIDTH, HEIGHT = 320, 240
 
@@ -49,15 +50,6 @@ def sphere_scene(n: int, seed: int = 0, radius_m: float = 0.35) -> GaussianSet:
 def bench_camera() -> Camera:
     K = [[300.0, 0.0, (WIDTH - 1) / 2], [0.0, 300.0, (HEIGHT - 1) / 2], [0.0, 0.0, 1.0]]
     return Camera("pinhole", K, np.zeros(5), WIDTH, HEIGHT, look_at((0.0, 0.1, -1.2), (0.0, 0.0, 0.0)))
-
-
-def _best(fn, repeats: int) -> float:
-    best = math.inf
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        best = min(best, time.perf_counter() - start)
-    return best
 
 
 def _forward_backward(render, gaussians: GaussianSet, camera: Camera):
@@ -97,8 +89,8 @@ def run(repeats: int = 5) -> dict:
         gaussians = sphere_scene(n)
         with torch.no_grad():
             out = render_gaussians(gaussians, camera)
-        forward = _best(lambda: render_gaussians(gaussians, camera), repeats)
-        both = _best(_forward_backward(render_gaussians, gaussians, camera), repeats)
+        forward = best_time(lambda: render_gaussians(gaussians, camera), repeats)[0]
+        both = best_time(_forward_backward(render_gaussians, gaussians, camera), repeats)[0]
         key = f"{n // 1000}k"
         results[f"{key}_forward_s"] = round(forward, 4)
         results[f"{key}_forward_backward_s"] = round(both, 4)

@@ -9,8 +9,6 @@ per frame, best of a few runs.
 from __future__ import annotations
 
 import json
-import math
-import time
 
 import numpy as np
 import torch
@@ -29,15 +27,11 @@ from egorelight_cli.render.uv_features import (
     texel_visibility,
 )
 from egorelight_cli.stages.geolift import coarse_normal_maps, stacked_input
+from timing import best_time
 
 
 def _best(fn, repeats: int) -> float:
-    best = math.inf
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        best = min(best, time.perf_counter() - start)
-    return best
+    return best_time(fn, repeats)[0]
 
 
 def run(repeats: int = 3) -> dict:

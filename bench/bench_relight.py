@@ -9,8 +9,6 @@ reports 100 ms/frame on an RTX 4090 for the whole relighting step.
 from __future__ import annotations
 
 import json
-import math
-import time
 
 import numpy as np
 import torch
@@ -23,19 +21,10 @@ from egorelight_cli.render.raster import rasterize_uv
 from egorelight_cli.render.uv_features import light_transfer, shadow_map, texel_surface, texel_visibility
 from egorelight_cli.render.uv_gaussians import texel_gaussians
 from egorelight_cli.stages import relight as rl
+from timing import best_time
 
 SETTINGS = {"cpu": dict(uv=64, base=16, levels=3, level=1, rays=16, repeats=3),
             "paper": dict(uv=512, base=32, levels=4, level=2, rays=32, repeats=1)}
-
-
-def _timed(fn, repeats: int) -> tuple[float, object]:
-    """Best time of ``repeats`` calls (after one warm-up call) and the result."""
-    result, best = fn(), math.inf
-    for _ in range(repeats):
-        start = time.perf_counter()
-        result = fn()
-        best = min(best, time.perf_counter() - start)
-    return best, result
 
 
 def run() -> dict:
@@ -59,16 +48,17 @@ def run() -> dict:
                                 np.zeros(len(vertices), bool))
         model = rl.RelightModel(s["base"], s["levels"], s["level"], s["rays"]).eval()
         low = rl.low_resolution_raster(character.face_uvs, s["uv"], s["level"])
-        rays_s, (rays, valid) = _timed(lambda: rl.camera_rays(frame, camera.centre_world, low, faces, stage,
-                                                                s["rays"]), s["repeats"])
+        rays_s, (rays, valid) = best_time(lambda: rl.camera_rays(frame, camera.centre_world, low, faces, stage,
+                                                                s["rays"]), s["repeats"], warmup=True)
         coverage = torch.from_numpy(raster.coverage)
         with torch.no_grad():
-            nets_s, (raw, spec) = _timed(lambda: (model.diffuse(frame.maps[None])[0],
+            nets_s, (raw, spec) = best_time(lambda: (model.diffuse(frame.maps[None])[0],
                                                   model.specular(frame.maps[None, :7], rays[None], valid[None])[0]),
-                                    s["repeats"])
+                                    s["repeats"], warmup=True)
             texel_raw = raw.permute(1, 2, 0)[coverage]
             gaussians, _ = texel_gaussians(frame.points, frame.footprint, texel_raw, frame.lambert)
-            splat_s, _ = _timed(lambda: render_gaussians(gaussians, camera, passes={"d": frame.lambert}), s["repeats"])
+            splat_s, _ = best_time(lambda: render_gaussians(gaussians, camera, passes={"d": frame.lambert}),
+                                   s["repeats"], warmup=True)
         results.update({f"{name}_texels": int(coverage.sum()), f"{name}_rays_ms": round(1000 * rays_s, 1),
                         f"{name}_networks_ms": round(1000 * nets_s, 1), f"{name}_splatting_ms": round(1000 * splat_s, 1),
                         f"{name}_total_ms": round(1000 * (rays_s + nets_s + splat_s), 1)})
