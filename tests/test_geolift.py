@@ -34,6 +34,10 @@ def test_coarse_normal_maps_and_the_temporal_stack(character, raster):
     first = gl.stacked_input(maps, 0)
     np.testing.assert_array_equal(first, np.concatenate([maps[0]] * 3))  # clamped at the sequence start
     np.testing.assert_array_equal(gl.stacked_input(maps, 2), np.concatenate([maps[0], maps[1], maps[2]]))
+    # stacked sequences: the history stops at the frame's own sequence start
+    np.testing.assert_array_equal(gl.stacked_input(maps, 2, first=1), np.concatenate([maps[1], maps[1], maps[2]]))
+    inputs = gl.network_inputs(maps, np.array([0, 1, 1]))
+    np.testing.assert_array_equal(inputs[1].numpy(), np.concatenate([maps[1]] * 3))
 
 
 def test_untrained_network_returns_the_baselines(character, raster):
@@ -127,6 +131,20 @@ def test_geolift_writes_uvmaps_with_lighting_features_and_scores(tiny_capture, t
     np.testing.assert_allclose(exr.layer("diffuse")[uv_raster.coverage], chi, rtol=2e-3, atol=1e-5)
     shadow = exr.layer("shadow")[..., 0]
     assert shadow.min() >= 0 and (shadow[uv_raster.coverage] > 0).mean() > 0.9
+
+
+def test_train_geolift_pairs_meshes_with_sequences(tiny_capture, tmp_path, run):
+    gt = tiny_capture / "groundtruth"
+    result = run("--preset", "tiny", "train", "geolift", "--capture", tiny_capture, "--meshes",
+                 gt / "relight_train" / "meshes.npz", "--meshes", gt / "ego_train" / "meshes.npz", "--seq",
+                 "relight_train", "--out", tmp_path / "m")
+    assert result.returncode == 2 and "--seq" in result.stderr and len(result.stderr.strip().splitlines()) == 1
+    result = run("--preset", "tiny", "-q", "--set", "train.steps=2", "train", "geolift", "--capture", tiny_capture,
+                 "--meshes", gt / "relight_train" / "meshes.npz", "--seq", "relight_train",
+                 "--meshes", gt / "ego_train" / "meshes.npz", "--seq", "ego_train", "--out", tmp_path / "both")
+    assert result.returncode == 0, result.stderr
+    metrics = json.loads((tmp_path / "both" / "manifest.json").read_text())["metrics"]
+    assert metrics["sequences"] == ["relight_train", "ego_train"] and metrics["validation_views"] > 0
 
 
 def test_geolift_errors_are_one_line(tiny_capture, trained_geolift, tmp_path, run):

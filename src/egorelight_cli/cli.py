@@ -393,15 +393,18 @@ def _geolift_commands(ctx: click.Context):
 @train_group.command("geolift")
 @click.option("--capture", required=True, type=click.Path(path_type=Path),
               help="Capture (flat-lit studio frames, recon/ and normals/ of train.sequence).")
-@click.option("--meshes", "meshes_path", required=True, type=click.Path(path_type=Path),
-              help="Tracked meshes of that sequence (animate --no-depth with the student model).")
+@click.option("--meshes", "meshes_paths", required=True, multiple=True, type=click.Path(path_type=Path),
+              help="Tracked meshes of a training sequence (animate --no-depth with the student); repeatable.")
+@click.option("--seq", "--sequence", "sequences", multiple=True,
+              help="The sequence of each --meshes, in the same order (default: train.sequence).")
 @click.option("--character", default="default", show_default=True, help="Character artifact, .npz, .character or 'default'.")
 @click.option("--out", required=True, type=click.Path(path_type=Path), help="Model artifact directory.")
 @common_options
 @click.pass_context
-def train_geolift(ctx: click.Context, capture: Path, meshes_path: Path, character: str, out: Path) -> None:
+def train_geolift(ctx: click.Context, capture: Path, meshes_paths: tuple[Path, ...], sequences: tuple[str, ...],
+                  character: str, out: Path) -> None:
     """Fit GeoLiftingNet: coarse UV normals of frames t-2..t -> UV normals + flat-lit texture."""
-    _geolift_commands(ctx).train(capture, meshes_path, character, out)
+    _geolift_commands(ctx).train(capture, list(meshes_paths), character, out, list(sequences) or None)
 
 
 @cli.command("geolift")

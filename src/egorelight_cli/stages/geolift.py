@@ -83,9 +83,10 @@ def coarse_normal_maps(raster: UVRaster, vertices: np.ndarray, faces: np.ndarray
     return maps
 
 
-def stacked_input(normal_maps: np.ndarray, index: int) -> np.ndarray:
-    """(9,H,W) the coarse normals of sequence frames ``index - 2, index - 1, index`` (clamped at 0)."""
-    picks = [max(index - k, 0) for k in reversed(range(HISTORY))]
+def stacked_input(normal_maps: np.ndarray, index: int, first: int = 0) -> np.ndarray:
+    """(9,H,W) the coarse normals of frames ``index - 2, index - 1, index``, clamped at ``first``
+    (the index of the sequence's first frame when several sequences are stacked)."""
+    picks = [max(index - k, first) for k in reversed(range(HISTORY))]
     return np.concatenate([normal_maps[i] for i in picks], axis=0)
 
 
@@ -99,12 +100,13 @@ class TrainView:
     """The pixels of one (frame, camera) that see the tracked mesh inside the subject mask.
 
     Attributes:
-        index: the frame's index in the mesh sequence.
+        index: the frame's index in the (stacked) mesh sequences.
         uv: (P,2) float32 UV the tracked mesh shows at each pixel.
         colour: (P,3) float32 flat-lit image (linear radiance).
         recon_normal: (P,3) float32 world normal of the reconstruction; recon_valid (P,) bool.
         screen_normal: (P,3) float32 world normal estimate (``normals/``); screen_valid (P,) bool.
         right, down: (P,) int64 index of the right / lower neighbour pixel in this view, -1 if none.
+        first: the index of its sequence's first frame (the temporal stack stops there).
     """
 
     index: int
@@ -116,6 +118,7 @@ class TrainView:
     screen_valid: np.ndarray
     right: np.ndarray
     down: np.ndarray
+    first: int = 0
 
 
 def _neighbours(selected: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -134,8 +137,9 @@ def _camera_to_world(normals_cam: np.ndarray, camera: Camera) -> np.ndarray:
 
 
 def build_views(capture: Capture, sequence: SequenceInfo, meshes: MeshSequence, faces: np.ndarray,
-                face_uvs: np.ndarray, frame_ids: np.ndarray, cameras: list[str]) -> list[TrainView]:
-    """Training views of the mesh frames ``frame_ids`` seen by the studio ``cameras``."""
+                face_uvs: np.ndarray, frame_ids: np.ndarray, cameras: list[str], offset: int = 0) -> list[TrainView]:
+    """Training views of the mesh frames ``frame_ids`` seen by the studio ``cameras``; ``offset``
+    is where this sequence's frames start in the stacked normal maps."""
     recon = read_reconstructions(sequence, frame_ids)
     views = []
     for frame_id in console.progress(frame_ids, total=len(frame_ids), desc="geolift views"):
@@ -162,7 +166,7 @@ def build_views(capture: Capture, sequence: SequenceInfo, meshes: MeshSequence, 
             screen_world = _camera_to_world(screen[selected], camera)
             right, down = _neighbours(selected)
             views.append(TrainView(
-                index=index, uv=mesh.uv[selected].astype(np.float32), colour=image[selected].astype(np.float32),
+                index=offset + index, first=offset, uv=mesh.uv[selected].astype(np.float32), colour=image[selected].astype(np.float32),
                 recon_normal=truth.normal[selected].astype(np.float32), recon_valid=truth.mask[selected],
                 screen_normal=screen_world.astype(np.float32),
                 screen_valid=np.linalg.norm(screen_world, axis=1) > 0.5, right=right, down=down))
@@ -225,13 +229,19 @@ def view_losses(normals: torch.Tensor, texture: torch.Tensor, view: TrainView) -
     }
 
 
-def train_geolift(views: list[TrainView], normal_maps: np.ndarray, settings: TrainSettings, net_cfg,
+def network_inputs(normal_maps: np.ndarray, starts: np.ndarray | None = None) -> torch.Tensor:
+    """(T,9,H,W) temporal stacks of every frame; ``starts`` (T,) each frame's sequence start (0)."""
+    starts = np.zeros(len(normal_maps), np.int64) if starts is None else starts
+    return torch.from_numpy(np.stack([stacked_input(normal_maps, i, int(starts[i])) for i in range(len(normal_maps))]))
+
+
+def train_geolift(views: list[TrainView], inputs: torch.Tensor, settings: TrainSettings, net_cfg,
                   texture_init: np.ndarray, checkpoint=None) -> tuple[GeoLiftNet, list[dict]]:
-    """Fit GeoLiftingNet to the views (CPU); returns the network and its training curve."""
+    """Fit GeoLiftingNet to the views (CPU) given every frame's :func:`network_inputs`; returns the
+    network and its training curve."""
     torch.manual_seed(settings.seed)
     model = GeoLiftNet(int(net_cfg.base_channels), int(net_cfg.levels), texture_init)
     optimizer = torch.optim.Adam(model.parameters(), lr=settings.lr)
-    inputs = torch.from_numpy(np.stack([stacked_input(normal_maps, i) for i in range(len(normal_maps))]))
 
     def step(k: int) -> dict[str, torch.Tensor]:
         rng = np.random.default_rng([settings.seed, k])
@@ -253,9 +263,9 @@ def train_geolift(views: list[TrainView], normal_maps: np.ndarray, settings: Tra
 
 
 @torch.no_grad()
-def predict_maps(model: GeoLiftNet, normal_maps: np.ndarray, index: int) -> tuple[np.ndarray, np.ndarray]:
-    """(normals (3,H,W), texture (3,H,W)) float32 for sequence frame ``index``."""
-    normals, texture = model(torch.from_numpy(stacked_input(normal_maps, index))[None])
+def predict_maps(model: GeoLiftNet, normal_maps: np.ndarray, index: int, first: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """(normals (3,H,W), texture (3,H,W)) float32 for frame ``index`` (sequence starting at ``first``)."""
+    normals, texture = model(torch.from_numpy(stacked_input(normal_maps, index, first))[None])
     return normals[0].numpy(), texture[0].numpy()
 
 
@@ -264,7 +274,8 @@ def fit_report(model: GeoLiftNet, views: list[TrainView], normal_maps: np.ndarra
     rows = {"rgb_l1": [], "rgb_l1_mean_texture": [], "normal_deg": [], "normal_deg_coarse": []}
     baseline_texture = torch.from_numpy(texture)[None]
     for view in views:
-        normals, predicted = (torch.from_numpy(m)[None] for m in predict_maps(model, normal_maps, view.index))
+        normals, predicted = (torch.from_numpy(m)[None]
+                              for m in predict_maps(model, normal_maps, view.index, view.first))
         coarse = torch.from_numpy(normal_maps[view.index])[None]
         uv = torch.from_numpy(view.uv)
         colour = torch.from_numpy(view.colour)

@@ -84,24 +84,34 @@ class GeoliftCommands:
     run: StageRun
 
     # ------------------------------------------------------------------------------- train
-    def train(self, capture_path: Path, meshes_path: Path, character_spec: str, out: Path) -> Path:
+    def train(self, capture_path: Path, meshes_paths: list[Path], character_spec: str, out: Path,
+              sequences: list[str] | None = None) -> Path:
+        """Train on the flat-lit frames of one or more sequences, each with its tracked meshes
+        (``meshes_paths[i]`` belongs to ``sequences[i]``; one meshes artifact defaults to
+        ``train.sequence``). The last ``validation_fraction`` of each sequence's frames is held out."""
         from egorelight_cli.stages.character_commands import character_sources, load_character
 
         cfg = self.run.config()
+        sequences = list(sequences or [str(cfg.train.sequence)])
+        if len(sequences) != len(meshes_paths):
+            raise EgorelightError(f"{len(meshes_paths)} --meshes but {len(sequences)} --seq: give one sequence per "
+                                  "meshes artifact (in the same order)")
         character, character_artifact = load_character(character_spec)
         capture, capture_artifact = open_capture(capture_path)
-        sequence = capture.sequence(str(cfg.train.sequence))
-        sequence.require_stream("recon")
-        meshes, meshes_artifact = load_character_meshes(meshes_path, character)
-        frames = sequence.flat_lit(np.intersect1d(meshes.frame_ids, sequence.content_frame_ids))
-        if len(frames) < 2:
-            raise EgorelightError(f"the meshes cover {len(frames)} flat-lit frame(s) of sequence {sequence.name!r}; "
-                                  "training and validation need at least 2", meshes_path)
-        held = max(1, int(round(float(cfg.train.validation_fraction) * len(frames))))
-        train_frames, val_frames = frames[:-held], frames[-held:]
-        cameras = training_cameras(capture, sequence)
-        inputs = [a for a in (capture_artifact, character_artifact, meshes_artifact) if a is not None]
-        sources = character_sources(character_spec, character_artifact) + ([] if meshes_artifact else [meshes_path])
+        parts, inputs = [], [a for a in (capture_artifact, character_artifact) if a is not None]
+        sources = character_sources(character_spec, character_artifact)
+        for name, meshes_path in zip(sequences, meshes_paths):
+            sequence = capture.sequence(name)
+            sequence.require_stream("recon")
+            meshes, meshes_artifact = load_character_meshes(meshes_path, character)
+            frames = sequence.flat_lit(np.intersect1d(meshes.frame_ids, sequence.content_frame_ids))
+            if len(frames) < 2:
+                raise EgorelightError(f"the meshes cover {len(frames)} flat-lit frame(s) of sequence {name!r}; "
+                                      "training and validation need at least 2", meshes_path)
+            held = max(1, int(round(float(cfg.train.validation_fraction) * len(frames))))
+            parts.append((sequence, meshes, frames[:-held], frames[-held:], training_cameras(capture, sequence)))
+            inputs += [meshes_artifact] if meshes_artifact is not None else []
+            sources += [] if meshes_artifact else [meshes_path]
         self.run.compute_device()  # CPU stage: --device cuda is refused, not silently ignored
         checkpoint = Path(out).parent / f".{Path(out).name}.checkpoint.pt"
 
@@ -112,36 +122,44 @@ class GeoliftCommands:
                 raise EgorelightError("a geolift model is a directory artifact: give --out a directory name", out)
             started = time.perf_counter()
             raster = rasterize_uv(character.face_uvs, int(cfg.net.uv_resolution))
-            normal_maps = gl.coarse_normal_maps(raster, meshes.vertices, character.faces)
-            train_views = gl.build_views(capture, sequence, meshes, character.faces, character.face_uvs,
-                                         train_frames, cameras)
-            val_views = gl.build_views(capture, sequence, meshes, character.faces, character.face_uvs,
-                                       val_frames, cameras)
+            maps, starts, train_views, val_views, offset = [], [], [], [], 0
+            for sequence, meshes, train_frames, val_frames, cameras in parts:
+                maps.append(gl.coarse_normal_maps(raster, meshes.vertices, character.faces))
+                starts.append(np.full(meshes.num_frames, offset, np.int64))
+                for frames, views in ((train_frames, train_views), (val_frames, val_views)):
+                    views += gl.build_views(capture, sequence, meshes, character.faces, character.face_uvs, frames,
+                                            cameras, offset)
+                offset += meshes.num_frames
+            normal_maps = np.concatenate(maps)
+            network_inputs = gl.network_inputs(normal_maps, np.concatenate(starts))
             texture = gl.mean_texture(train_views, raster.resolution)
             writer.timing["views_s"] = round(time.perf_counter() - started, 3)
-            console.info(f"train geolift: {len(train_views)} views ({len(train_frames)} frames x {len(cameras)} "
-                         f"cameras), {len(val_views)} held-out views")
+            console.info(f"train geolift: {len(train_views)} views of {', '.join(sequences)}, "
+                         f"{len(val_views)} held-out views")
             started = time.perf_counter()
-            model, curve = gl.train_geolift(train_views, normal_maps, gl.TrainSettings.from_config(cfg), cfg.net,
+            model, curve = gl.train_geolift(train_views, network_inputs, gl.TrainSettings.from_config(cfg), cfg.net,
                                             texture.reshape(3, -1).mean(axis=1), checkpoint)
             writer.timing["train_s"] = round(time.perf_counter() - started, 3)
             writer.metrics.update(gl.fit_report(model, train_views, normal_maps, texture))
             validation = gl.fit_report(model, val_views, normal_maps, texture)
             writer.metrics.update({k.replace("train_", "val_", 1): v for k, v in validation.items()})
             extra = {"uv_resolution": int(cfg.net.uv_resolution), "mean_texture": torch.from_numpy(texture),
-                     "flat_scale": _flat_scale(sequence, frames), "sequence": sequence.name, "cameras": cameras,
-                     "train_frames": train_frames.tolist(), "val_frames": val_frames.tolist(),
+                     "flat_scale": float(np.median([_flat_scale(p[0], p[2]) for p in parts])),
+                     "sequences": sequences, "cameras": sorted({c for p in parts for c in p[4]}),
+                     "train_frames": {p[0].name: p[2].tolist() for p in parts},
+                     "val_frames": {p[0].name: p[3].tolist() for p in parts},
                      "detail_loss": "neighbour-difference L1 (substitute: no VGG weights)"}
             write_model(writer.workdir, ModelPayload(gl.MODEL_STAGE, model.architecture(), model.state_dict(), extra,
                                                      curve), curve_title="geolift training loss")
             writer.metrics.update({
-                "training_views": len(train_views), "validation_views": len(val_views),
+                "sequences": sequences, "training_views": len(train_views), "validation_views": len(val_views),
                 "loss_first": curve[0]["loss"], "loss_last": curve[-1]["loss"],
                 "detail_loss": extra["detail_loss"],
             })
             writer.units.update({"rgb_l1": "linear radiance", "normal_deg": "degrees"})
 
-        result = self.run.produce(out, "model", write, inputs=inputs, source_files=sources)
+        result = self.run.produce(out, "model", write, inputs=inputs, source_files=sources,
+                                  options={"sequences": sequences})
         checkpoint.unlink(missing_ok=True)
         return result
 
