@@ -140,21 +140,22 @@ $(SUBJECT)/meshes/%/manifest.json: $(SUBJECT)/motion/%/manifest.json $(SUBJECT)/
 		--seq $* --calibration $(SUBJECT)/calibration --out $(SUBJECT)/meshes/$*
 
 # ---------------------------------------------------------------- geolift (Sec. geometry lifting)
-# meshes_student/<seq>: the depth-agnostic student driven by the studio's mocap (relight_train:
-# the appearance stages' training meshes); GeoLift trains on the flat-lit frames of GEOLIFT_TRAIN_SEQ
+# meshes_student/<seq>: the depth-agnostic student driven by the studio's mocap (the appearance
+# stages' training meshes). GeoLift trains on the flat-lit frames of GEOLIFT_TRAIN_SEQS (relight_train
+# as in the paper, plus ego_train's flat frames: on the cpu demo 12 frames alone do not generalise)
 # and runs on any tracked meshes/<seq>, with the sequence's lighting features (rho, chi).
 GEOLIFT_MODEL := $(SUBJECT)/models/geolift/manifest.json
-GEOLIFT_TRAIN_SEQ ?= relight_train
+GEOLIFT_TRAIN_SEQS ?= relight_train ego_train
 
 $(SUBJECT)/meshes_student/%/manifest.json: $(SUBJECT)/motion_mocap/%/manifest.json $(ANIMATE_STUDENT) $(CHARACTER) \
 		$(CAPTURE)
 	$(EGO) $(EGOFLAGS) animate --no-depth --motion $(SUBJECT)/motion_mocap/$* --model $(SUBJECT)/models/animate_student \
 		--character $(SUBJECT)/character --capture $(SUBJECT)/capture --seq $* --out $(SUBJECT)/meshes_student/$*
 
-$(GEOLIFT_MODEL): $(CAPTURE) $(CHARACTER) $(SUBJECT)/meshes_student/$(GEOLIFT_TRAIN_SEQ)/manifest.json
-	$(EGO) $(EGOFLAGS) train geolift --set train.sequence=$(GEOLIFT_TRAIN_SEQ) --capture $(SUBJECT)/capture \
-		--meshes $(SUBJECT)/meshes_student/$(GEOLIFT_TRAIN_SEQ) --character $(SUBJECT)/character \
-		--out $(SUBJECT)/models/geolift
+$(GEOLIFT_MODEL): $(CAPTURE) $(CHARACTER) $(foreach s,$(GEOLIFT_TRAIN_SEQS),$(SUBJECT)/meshes_student/$(s)/manifest.json)
+	$(EGO) $(EGOFLAGS) train geolift --capture $(SUBJECT)/capture \
+		$(foreach s,$(GEOLIFT_TRAIN_SEQS),--meshes $(SUBJECT)/meshes_student/$(s) --seq $(s)) \
+		--character $(SUBJECT)/character --out $(SUBJECT)/models/geolift
 
 $(SUBJECT)/uvmaps/%/manifest.json: $(SUBJECT)/meshes/%/manifest.json $(GEOLIFT_MODEL) $(CHARACTER) $(CAPTURE)
 	$(EGO) $(EGOFLAGS) geolift --meshes $(SUBJECT)/meshes/$* --model $(SUBJECT)/models/geolift \
