@@ -17,11 +17,8 @@ The fast path works on *(splat, pixel) pairs* rather than on tiles, in three mod
 
 The result is the dense composite of each pixel's kept prefix, which
 ``render/gaussians_reference.py`` (every Gaussian against every pixel) computes directly; the
-tests hold the two to each other. Deterministic on the CPU.
-
-The dense reference (every Gaussian against every pixel) is ``render/gaussians_reference.py``;
-the tests hold this path to it. On CUDA with gsplat installed, ``backend="auto"`` uses
-``gsplat.rasterization`` (``render/gsplat_backend.py``).
+tests hold the two to each other. Deterministic on the CPU. On CUDA with gsplat installed,
+``backend="auto"`` uses ``gsplat.rasterization`` (``render/gsplat_backend.py``).
 """
 
 from __future__ import annotations
