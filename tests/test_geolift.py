@@ -131,6 +131,11 @@ def test_geolift_writes_uvmaps_with_lighting_features_and_scores(tiny_capture, t
     np.testing.assert_allclose(exr.layer("diffuse")[uv_raster.coverage], chi, rtol=2e-3, atol=1e-5)
     shadow = exr.layer("shadow")[..., 0]
     assert shadow.min() >= 0 and (shadow[uv_raster.coverage] > 0).mean() > 0.9
+    # the same meshes with another --seq is another output, not "up to date"
+    result = run("--preset", "tiny", "geolift", "--meshes", meshes_path, "--model", trained_geolift,
+                 "--capture", tiny_capture, "--seq", "relight_train", "--out", out)
+    assert result.returncode == 0, result.stderr
+    assert json.loads((out / "manifest.json").read_text())["metrics"]["sequence"] == "relight_train"
 
 
 def test_train_geolift_pairs_meshes_with_sequences(tiny_capture, tmp_path, run):

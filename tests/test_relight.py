@@ -76,6 +76,12 @@ def test_relight_renders_held_out_cameras_and_scores_them(tiny_capture, relight_
 
     gaussians, rgb = read_gaussian_ply(out / "gaussians" / exrs[0].name.replace(".exr", ".ply"))
     assert len(gaussians) > 100 and (rgb >= 0).all() and (rgb <= 1).all()
+    # --cameras all is another output, not "up to date"
+    code = _main("--preset", "tiny", "-q", "relight", "--capture", tiny_capture, "--meshes",
+                 tiny_capture / "groundtruth" / "test" / "meshes.npz", "--uvmaps", relight_inputs / "uvmaps_test",
+                 "--model", relight_model, "--seq", "test", "--export", "ply", "--cameras", "all", "--out", out)
+    assert code == 0
+    assert len(json.loads((out / "manifest.json").read_text())["metrics"]["cameras"]) > len(sequence["held_out_cameras"])
 
 
 def test_relight_needs_lighting_features(tiny_capture, relight_inputs, relight_model, tmp_path, capsys):

@@ -190,7 +190,8 @@ class GeoliftCommands:
                 exposure = float(capture_artifact.manifest.get("config", {}).get("studio", {}).get("exposure", 1.0))
             write_uvmaps(writer, cfg, model, extra, character, meshes, capture, sequence, exposure)
 
-        return self.run.produce(out, "uvmaps", write, inputs=inputs, source_files=sources)
+        return self.run.produce(out, "uvmaps", write, inputs=inputs, source_files=sources,
+                                options={"sequence": seq if capture is not None else None})
 
 
 def map_path(frame_id: int) -> str:

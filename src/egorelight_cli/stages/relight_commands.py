@@ -258,4 +258,5 @@ class RelightCommands:
             writer.units.update({"psnr": "dB on the metric tone mapping (exposure 1, sRGB, clipped)",
                                  "ssim": "x100", "preview": "captured | relit | Lambert | baked"})
 
-        return self.run.produce(out, "renders", write, inputs=inputs + [model_artifact])
+        return self.run.produce(out, "renders", write, inputs=inputs + [model_artifact],
+                                options={"sequence": seq, "cameras": "all" if all_cameras else "held-out"})
