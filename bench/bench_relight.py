@@ -48,8 +48,9 @@ def run() -> dict:
                                 np.zeros(len(vertices), bool))
         model = rl.RelightModel(s["base"], s["levels"], s["level"], s["rays"]).eval()
         low = rl.low_resolution_raster(character.face_uvs, s["uv"], s["level"])
-        rays_s, (rays, valid) = best_time(lambda: rl.camera_rays(frame, camera.centre_world, low, faces, stage,
-                                                                s["rays"]), s["repeats"], warmup=True)
+        rays_s, (rays, valid) = best_time(lambda: rl.camera_rays(rl.ray_lighting(frame, low, faces, stage),
+                                                                intensities, camera.centre_world, stage, s["rays"]),
+                                          s["repeats"], warmup=True)
         coverage = torch.from_numpy(raster.coverage)
         with torch.no_grad():
             nets_s, (raw, spec) = best_time(lambda: (model.diffuse(frame.maps[None])[0],

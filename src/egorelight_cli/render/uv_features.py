@@ -105,6 +105,39 @@ def light_transfer(points: np.ndarray, normals: np.ndarray, lightstage: LightSta
     return torch.from_numpy(out)
 
 
+@dataclass(frozen=True, eq=False)
+class TexelLighting:
+    """The view-independent lighting geometry of one posed mesh's texels.
+
+    Attributes:
+        surface: texel points and coarse normals (:func:`texel_surface`).
+        normals: (N,3) float64 unit shading normals the transfer was computed with.
+        transfer: (N,L) float32 per-light transfer ``G`` with the mesh's own shadows.
+    """
+
+    surface: TexelSurface
+    normals: np.ndarray
+    transfer: torch.Tensor
+
+
+def texel_lighting(raster: UVRaster, vertices: np.ndarray, faces: np.ndarray, lightstage: LightStage,
+                   normals: np.ndarray | None = None, delta: float = SHADOW_EPS) -> TexelLighting:
+    """Texel surface, visibility (shadow rays leave along the coarse normals) and transfer ``G``.
+
+    ``normals`` (N,3), e.g. GeoLift's lifted ones, shade the texels; they are renormalised, and
+    rows shorter than 0.5 (texels the map does not cover) and ``None`` use the coarse normals.
+    """
+    vertices = np.asarray(vertices, dtype=np.float64)
+    surface = texel_surface(raster, vertices, faces)
+    shading = surface.normals
+    if normals is not None:
+        normals = np.asarray(normals, dtype=np.float64)
+        length = np.linalg.norm(normals, axis=1, keepdims=True)
+        shading = np.where(length > 0.5, normals / np.maximum(length, 1e-12), surface.normals)
+    visibility = texel_visibility(vertices, faces, surface, lightstage, delta)
+    return TexelLighting(surface, shading, light_transfer(surface.points, shading, lightstage, visibility))
+
+
 def shadow_map(transfer: torch.Tensor) -> torch.Tensor:
     """Flat-lit shadow map ``rho`` (N,): ``sum_l G_l / pi``."""
     return transfer.sum(dim=1) / math.pi

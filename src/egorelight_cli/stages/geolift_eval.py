@@ -24,7 +24,7 @@ from egorelight_cli.io.capture import Capture
 from egorelight_cli.io.exr import read_exr
 from egorelight_cli.render.lightstage import LightStage
 from egorelight_cli.render.raster import UVRaster
-from egorelight_cli.render.uv_features import irradiance_map, light_transfer, texel_surface, texel_visibility
+from egorelight_cli.render.uv_features import irradiance_map, texel_lighting, texel_surface
 from egorelight_cli.stages.animate_eval import groundtruth_meshes
 from egorelight_cli.stages.geolift import angle_deg
 
@@ -62,13 +62,11 @@ class GeoLiftTruth:
     def frame(self, frame_id: int) -> tuple[np.ndarray, np.ndarray | None]:
         """(true normals (N,3), true flat-lit diffuse texture (N,3) or None) at the covered texels."""
         vertices = self.meshes.vertices[self.meshes.index_of(int(frame_id))]
-        surface = texel_surface(self.raster, vertices, self.faces)
         if self.albedo is None:
-            return surface.normals, None
-        visibility = texel_visibility(vertices, self.faces, surface, self.lightstage)
-        transfer = light_transfer(surface.points, surface.normals, self.lightstage, visibility)
-        irradiance = irradiance_map(transfer, self.lightstage, self.flat).numpy()
-        return surface.normals, self.albedo / np.pi * irradiance * self.exposure
+            return texel_surface(self.raster, vertices, self.faces).normals, None
+        lit = texel_lighting(self.raster, vertices, self.faces, self.lightstage)
+        irradiance = irradiance_map(lit.transfer, self.lightstage, self.flat).numpy()
+        return lit.surface.normals, self.albedo / np.pi * irradiance * self.exposure
 
 
 class GeoLiftScores:

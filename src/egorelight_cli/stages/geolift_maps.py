@@ -22,14 +22,7 @@ from egorelight_cli.nn.geolift_net import GeoLiftNet
 from egorelight_cli.render.lighting import CaptureEnvmaps, light_intensities
 from egorelight_cli.render.lightstage import LightStage
 from egorelight_cli.render.raster import rasterize_uv
-from egorelight_cli.render.uv_features import (
-    irradiance_map,
-    light_transfer,
-    shadow_map,
-    texel_map,
-    texel_surface,
-    texel_visibility,
-)
+from egorelight_cli.render.uv_features import irradiance_map, shadow_map, texel_lighting, texel_map
 from egorelight_cli.stages import geolift as gl
 from egorelight_cli.stages.geolift_eval import GeoLiftScores, GeoLiftTruth
 from egorelight_cli.structures.character import Character
@@ -40,14 +33,10 @@ PREVIEW_TILE = 128  # pixels per UV map in the preview
 def _lighting_features(vertices: np.ndarray, faces: np.ndarray, raster, normals: np.ndarray, lightstage: LightStage,
                        intensities: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(rho (H,W,1), chi (H,W,3)) with the lifted normals (3,H,W) and the tracked mesh's shadows."""
-    surface = texel_surface(raster, vertices, faces)
-    visibility = texel_visibility(vertices, faces, surface, lightstage)
-    lifted = np.moveaxis(normals, 0, -1)[raster.coverage].astype(np.float64)
-    lifted /= np.maximum(np.linalg.norm(lifted, axis=1, keepdims=True), 1e-12)
-    transfer = light_transfer(surface.points, lifted, lightstage, visibility)
-    rho = shadow_map(transfer).numpy()[:, None]
-    chi = irradiance_map(transfer, lightstage, intensities).numpy()
-    return surface.to_map(rho.astype(np.float32)), surface.to_map(chi.astype(np.float32))
+    lit = texel_lighting(raster, vertices, faces, lightstage, np.moveaxis(normals, 0, -1)[raster.coverage])
+    rho = shadow_map(lit.transfer).numpy()[:, None]
+    chi = irradiance_map(lit.transfer, lightstage, intensities).numpy()
+    return lit.surface.to_map(rho.astype(np.float32)), lit.surface.to_map(chi.astype(np.float32))
 
 
 def _normal_image(maps: np.ndarray, coverage: np.ndarray) -> np.ndarray:

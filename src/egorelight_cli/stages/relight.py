@@ -34,7 +34,7 @@ from egorelight_cli.render.gaussians import GaussianRender, render_gaussians
 from egorelight_cli.render.image_metrics import ssim
 from egorelight_cli.render.lightstage import LightStage
 from egorelight_cli.render.raster import UVRaster, rasterize_uv
-from egorelight_cli.render.uv_features import light_transfer, ray_encoding, select_rays, texel_surface, texel_visibility
+from egorelight_cli.render.uv_features import TexelLighting, ray_encoding, select_rays, texel_lighting, texel_surface
 from egorelight_cli.render.uv_gaussians import (
     TexelGaussianSettings,
     diffuse_colour,
@@ -108,21 +108,23 @@ def frame_inputs(raster: UVRaster, maps: dict[str, np.ndarray], vertices: np.nda
                         vertices, head_texel, torch.from_numpy(lambert.astype(np.float32)))
 
 
-def camera_rays(frame: RelightFrame, camera_centre: np.ndarray, low_raster: UVRaster, faces: np.ndarray,
-                lightstage: LightStage, r: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Top-r ray encodings (h,w,r,6) and validity (h,w,r) at the attention level's UV resolution."""
-    surface = texel_surface(low_raster, frame.vertices, faces)
-    height, width = low_raster.resolution
-    lifted = F.interpolate(frame.maps[None, 4:7], size=(height, width), mode="area")[0]
-    normals = F.normalize(lifted, dim=0).permute(1, 2, 0).numpy()[low_raster.coverage].astype(np.float64)
-    normals = np.where(np.linalg.norm(normals, axis=1, keepdims=True) > 0.5, normals, surface.normals)
-    visibility = texel_visibility(frame.vertices, faces, surface, lightstage)
-    transfer = light_transfer(surface.points, normals, lightstage, visibility)
-    index, valid = select_rays(surface.points, normals, transfer, lightstage, frame.intensities, camera_centre, r)
-    psi = ray_encoding(surface.points, normals, transfer, lightstage, frame.intensities, camera_centre, index, valid)
-    rays = torch.zeros(height, width, r, 6, dtype=torch.float32)
-    mask = torch.zeros(height, width, r, dtype=torch.bool)
-    coverage = torch.from_numpy(low_raster.coverage)
+def ray_lighting(frame: RelightFrame, low_raster: UVRaster, faces: np.ndarray, lightstage: LightStage) -> TexelLighting:
+    """The frame's view-independent texel lighting at the attention level's UV resolution, shaded
+    with GeoLift's normals (area-averaged down to that resolution)."""
+    lifted = F.normalize(F.interpolate(frame.maps[None, 4:7], size=low_raster.resolution, mode="area")[0], dim=0)
+    normals = lifted.permute(1, 2, 0).numpy()[low_raster.coverage]
+    return texel_lighting(low_raster, frame.vertices, faces, lightstage, normals)
+
+
+def camera_rays(lighting: TexelLighting, intensities: np.ndarray, camera_centre: np.ndarray, lightstage: LightStage,
+                r: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Top-r ray encodings (h,w,r,6) and validity (h,w,r) of one camera, from :func:`ray_lighting`."""
+    points, normals, transfer = lighting.surface.points, lighting.normals, lighting.transfer
+    index, valid = select_rays(points, normals, transfer, lightstage, intensities, camera_centre, r)
+    psi = ray_encoding(points, normals, transfer, lightstage, intensities, camera_centre, index, valid)
+    coverage = torch.from_numpy(lighting.surface.coverage)
+    rays = torch.zeros(coverage.shape + (r, 6), dtype=torch.float32)
+    mask = torch.zeros(coverage.shape + (r,), dtype=torch.bool)
     rays[coverage], mask[coverage] = psi.float(), valid
     return rays, mask
 

@@ -34,6 +34,7 @@ from egorelight_cli.pipeline import StageRun
 from egorelight_cli.render.lighting import CaptureEnvmaps, light_intensities
 from egorelight_cli.render.lightstage import LightStage
 from egorelight_cli.render.raster import rasterize_uv
+from egorelight_cli.render.uv_features import TexelLighting
 from egorelight_cli.stages import relight as rl
 from egorelight_cli.stages.geolift_commands import load_character_meshes, map_path, training_cameras
 from egorelight_cli.stages.relight_eval import RelightScores, score_view
@@ -58,6 +59,7 @@ class RelightData:
         names = character.segmentation_names
         self.head_vertices = np.isin(character.segmentation, [k for k, v in names.items() if v in ("hair", "face")])
         self._frames: dict[int, rl.RelightFrame] = {}
+        self._lighting: dict[int, TexelLighting] = {}
         self._rays: dict[tuple[int, str], tuple[torch.Tensor, torch.Tensor]] = {}
 
     def frame(self, frame_id: int) -> rl.RelightFrame:
@@ -82,9 +84,13 @@ class RelightData:
     def view_rays(self, frame_id: int, camera: str) -> tuple[torch.Tensor, torch.Tensor]:
         key = (frame_id, camera)
         if key not in self._rays:
+            frame = self.frame(frame_id)
+            if frame_id not in self._lighting:  # view-independent: shadow rays once per frame
+                self._lighting[frame_id] = rl.ray_lighting(frame, self.low_raster, self.character.faces,
+                                                           self.lightstage)
             centre = self.capture.studio_cameras[camera].centre_world
-            self._rays[key] = rl.camera_rays(self.frame(frame_id), centre, self.low_raster, self.character.faces,
-                                             self.lightstage, self.rays)
+            self._rays[key] = rl.camera_rays(self._lighting[frame_id], frame.intensities, centre, self.lightstage,
+                                             self.rays)
         return self._rays[key]
 
     def target(self, frame_id: int, camera: str) -> tuple[torch.Tensor, torch.Tensor]:
