@@ -125,16 +125,22 @@ class SurfaceDistance:
         self.tree = cKDTree(samples)
         self.candidates = int(candidates)
 
-    def __call__(self, points: np.ndarray) -> np.ndarray:
-        """(N,) distances (metres) of points (N,3) to the surface."""
+    def closest(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Closest surface points of points (N,3): (points (N,3), face index (N,) int64, distance (N,) metres)."""
         from trimesh.triangles import closest_point
 
         points = np.asarray(points, np.float64).reshape(-1, 3)
         if len(points) == 0:
-            return np.zeros(0)
+            return np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros(0)
         _, index = self.tree.query(points, k=min(self.candidates, self.tree.n))
         faces = self.sample_face[index.reshape(len(points), -1)]  # (N,k)
         flat_points = np.repeat(points, faces.shape[1], axis=0)
         closest = closest_point(self.triangles[faces.reshape(-1)], flat_points)
         distance = np.linalg.norm(closest - flat_points, axis=1).reshape(faces.shape)
-        return distance.min(axis=1)
+        best = distance.argmin(axis=1)
+        rows = np.arange(len(points))
+        return closest.reshape(len(points), -1, 3)[rows, best], faces[rows, best], distance[rows, best]
+
+    def __call__(self, points: np.ndarray) -> np.ndarray:
+        """(N,) distances (metres) of points (N,3) to the surface."""
+        return self.closest(points)[2]
