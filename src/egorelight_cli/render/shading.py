@@ -53,6 +53,7 @@ import torch
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.geometry.cameras import Camera
 from egorelight_cli.geometry.raycast import RayCaster
+from egorelight_cli.geometry.tangents import face_uv_tangents, world_from_tangent_space
 from egorelight_cli.render.lightstage import LightStage
 from egorelight_cli.render.raster import (
     RasterResult,
@@ -131,11 +132,14 @@ class Material:
         albedo: diffuse reflectance, linear RGB in [0,1] (C = 3, or 1 for grey).
         specular: specular albedo ks, grey (C = 1) or RGB; 0 disables the lobe.
         roughness: in (0, 1] (C = 1); mapped to a Blinn-Phong exponent by :func:`roughness_to_shininess`.
+        normal_map: None, or a (H_t,W_t,3) tangent-space normal texture (``(0,0,1)``: no detail;
+            see :mod:`egorelight_cli.geometry.tangents`) that tilts the shading normals.
     """
 
     albedo: np.ndarray | float = 0.5
     specular: np.ndarray | float = 0.0
     roughness: np.ndarray | float = 0.5
+    normal_map: np.ndarray | None = None
 
     def at(self, uv: np.ndarray | None, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Per-point (albedo (n,3), ks (n,3), shininess (n,)) at UVs (n,2) (None: constants/per-point only)."""
@@ -143,6 +147,21 @@ class Material:
         ks = _resolve(self.specular, uv, n, 3, "specular")
         shininess = roughness_to_shininess(_resolve(self.roughness, uv, n, 1, "roughness")[:, 0])
         return albedo, ks, shininess
+
+    def detail_normals(self, normals: np.ndarray, uv: np.ndarray | None, face_id: np.ndarray, vertices: np.ndarray,
+                       faces: np.ndarray, face_uvs: np.ndarray | None) -> np.ndarray:
+        """(n,3) shading normals tilted by the normal map (unchanged without one or without UVs).
+
+        Args:
+            normals: (n,3) unit interpolated normals at the points; uv (n,2) their UVs.
+            face_id: (n,) face of each point; vertices (V,3), faces (F,3), face_uvs (F,3,2) the mesh.
+        """
+        if self.normal_map is None or uv is None or face_uvs is None or len(normals) == 0:
+            return normals
+        tangent, sign = face_uv_tangents(vertices, faces, face_uvs)
+        tilted = world_from_tangent_space(_sample_texture(self.normal_map, uv), normals, tangent[face_id],
+                                          sign[face_id])
+        return tilted.astype(np.float32)
 
 
 # --------------------------------------------------------------------------------------------
@@ -384,7 +403,7 @@ class RenderResult:
         radiance: (H,W,3) float32 linear RGB radiance (background filled in).
         mask: (H,W) bool, True where the mesh is visible.
         depth: (H,W) float32 camera-frame z of the visible surface, metres (0 on background).
-        normal: (H,W,3) float32 unit world shading normals (0 on background).
+        normal: (H,W,3) float32 unit world shading normals, with the normal map (0 on background).
         face_id: (H,W) int32 visible face, -1 on background.
         albedo: (H,W,3) float32 diffuse albedo seen at each pixel (0 on background).
         diffuse: (H,W,3) float32 diffuse radiance (0 on background).
@@ -478,7 +497,9 @@ def render_view(vertices: np.ndarray, faces: np.ndarray, face_uvs: np.ndarray | 
     H, W = mask.shape
     n = int(mask.sum())
     points = raster.points[mask]
-    shading_normals = raster.normal[mask]
+    face_id = raster.face_id[mask]
+    shading_normals = material_textures.detail_normals(raster.normal[mask], None if raster.uv is None else raster.uv[mask],
+                                                       face_id, vertices, faces, face_uvs)
     offset_normals = raster.face_normal[mask]
     view_dirs = camera.centre_world.astype(np.float32) - points
     view_dirs /= np.sqrt(np.sum(view_dirs * view_dirs, axis=-1, keepdims=True))
@@ -488,7 +509,6 @@ def render_view(vertices: np.ndarray, faces: np.ndarray, face_uvs: np.ndarray | 
     light_positions = lightstage.positions[active]
     exact = np.zeros(len(active), dtype=bool)
     exact[_strongest_lights(lightstage, intensities, active, exact_lights)] = True
-    face_id = raster.face_id[mask]
     corner_vis = None if vertex_visibility is None else vertex_visibility[:, active]
 
     outputs = [np.zeros((n, 3), np.float32) for _ in range(3)]
@@ -521,6 +541,6 @@ def render_view(vertices: np.ndarray, faces: np.ndarray, face_uvs: np.ndarray | 
     irradiance, diffuse, specular = (image(v) for v in outputs)
     radiance = _background(background, H, W)
     radiance[mask] = diffuse[mask] + specular[mask]
-    return RenderResult(radiance=radiance, mask=mask, depth=raster.depth, normal=raster.normal,
+    return RenderResult(radiance=radiance, mask=mask, depth=raster.depth, normal=image(shading_normals),
                         face_id=raster.face_id, albedo=image(albedo), diffuse=diffuse, specular=specular,
                         irradiance=irradiance, shadow_rays=rays, raster=raster)

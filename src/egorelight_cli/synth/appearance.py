@@ -56,6 +56,8 @@ class Appearance:
         material: (R,R) int8 material class per texel (see :data:`MATERIAL_NAMES`).
         coverage: (R,R) bool, texels inside a UV island.
         description: what the seed chose (skin tone, colours, shirt pattern).
+        normal_map: (R,R,3) float32 tangent-space detail normals (:mod:`egorelight_cli.synth.detail`)
+            or None.
     """
 
     albedo: np.ndarray
@@ -64,6 +66,7 @@ class Appearance:
     material: np.ndarray
     coverage: np.ndarray
     description: dict
+    normal_map: np.ndarray | None = None
 
 
 def vertex_materials(character: Character) -> np.ndarray:

@@ -11,6 +11,8 @@ A capture (artifact kind ``egorelight/capture``) is laid out as::
                                                              "markers": [{"id", "corners_hmd": (4,3)}]}}
       rig/board.json                            ChArUco board: squares_x/y, square_length_m, marker_length_m,
                                                 dictionary, legacy_pattern
+      scan/scan.ply                             a rest-pose 3D scan of the clothed subject (no HMD; own
+                                                tessellation, noise, holes): ``character fit-scan`` input
       envmaps/<name>.exr                        HDR maps (RGB float32 equirect) named by the light patterns
       sequences/<seq>/sequence.json             see below
       sequences/<seq>/studio/<cam>/<frame>.exr  linear HDR radiance (R,G,B; half float by default)
@@ -46,13 +48,15 @@ lights' units times ``studio.exposure`` (1: a flat-lit white Lambertian surface 
 
 Ego frame ``e`` of a sequence was exposed together with studio frame ``e + ego_offset``; the offset
 is ground truth only (recover it from the flash code). The ego cameras' extrinsics
-``T_cam_from_hmd`` and colour responses, head poses and board pose are ground truth only.
+``T_cam_from_hmd`` and colour responses, head poses and board pose are ground truth only. The studio
+cameras and HMD intrinsics in ``rig/`` carry a seeded calibration error; the true ones are ground truth
+(:mod:`egorelight_cli.synth.calibration_error`).
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
@@ -74,10 +78,12 @@ from egorelight_cli.render.camera_response import CameraResponse, random_ego_res
 from egorelight_cli.render.envmaps import detailed_surroundings, envmap_set, write_envmap
 from egorelight_cli.render.lighting import light_intensities
 from egorelight_cli.render.lightstage import LightStage
+from egorelight_cli.render.raster import rasterize_uv
 from egorelight_cli.structures.character import Character
 from egorelight_cli.synth import derived, groundtruth
 from egorelight_cli.synth.appearance import make_appearance
-from egorelight_cli.synth.clothing import ClothingModel, ClothingParams
+from egorelight_cli.synth.calibration_error import write_calibrations
+from egorelight_cli.synth.detail import detail_normal_map
 from egorelight_cli.synth.hmd import (
     DOWN_ROLES,
     EGO_ROLES,
@@ -86,6 +92,7 @@ from egorelight_cli.synth.hmd import (
     make_hmd,
 )
 from egorelight_cli.synth.preview import contact_sheet, tonemap
+from egorelight_cli.synth.scan import scan_subject
 from egorelight_cli.synth.rig import (
     TRACKING_ROLE,
     board_json,
@@ -99,12 +106,12 @@ from egorelight_cli.synth.scene import (
     BOARD,
     BODY,
     HMD,
-    body_mesh,
     joint_transforms,
     place,
-    posed_bodies,
     scene_layout,
+    subject_mesh,
 )
+from egorelight_cli.synth.subject import Subject, make_subject
 from egorelight_cli.synth.sensors import (
     DomeBackdrop,
     FrameRenderer,
@@ -124,10 +131,9 @@ def frame_name(frame_id: int, suffix: str) -> str:
 class Rig:
     """Everything fixed for a whole capture."""
 
-    character: Character
+    subject: Subject
     cfg: Config
     appearance: object
-    clothing: ClothingModel
     hmd: Hmd
     cameras: list[tuple[Camera, str]]
     held_out: list[str]
@@ -177,9 +183,13 @@ class SequenceStats:
 def build_rig(cfg: Config, character: Character, user_envmaps: dict[str, np.ndarray]) -> Rig:
     seed = int(cfg.seed)
     console.info("synth: building the subject, rig and environment maps")
-    appearance = make_appearance(character, int(cfg.appearance.texture_resolution), seed)
-    clothing = ClothingModel(character, ClothingParams(**cfg.clothing.to_dict()), seed=seed)
-    hmd = make_hmd(character, cfg.hmd, seed)
+    subject = make_subject(character, cfg, seed)
+    body = subject.body
+    appearance = make_appearance(body, int(cfg.appearance.texture_resolution), seed)
+    raster = rasterize_uv(body.face_uvs, int(cfg.appearance.texture_resolution))
+    appearance = replace(appearance, normal_map=detail_normal_map(raster, body.vertices, body.faces, body.face_uvs,
+                                                                  appearance.material, seed))
+    hmd = make_hmd(body, cfg.hmd, seed)
     cameras = studio_cameras(cfg.studio, seed)
     held_out = held_out_cameras(cameras, int(cfg.studio.held_out))
     lightstage = make_lightstage(cfg.lights, seed)
@@ -197,9 +207,9 @@ def build_rig(cfg: Config, character: Character, user_envmaps: dict[str, np.ndar
     responses = {role: random_ego_response(rng, exposure=float(h.ego_exposure if role in DOWN_ROLES else h.front_exposure),
                                            exposure_stops=float(h.exposure_stops))
                  for role in EGO_ROLES}
-    rest_hmd = hmd.world_from_hmd(joint_transforms(character, character.rest_theta[None]))[0]
+    rest_hmd = hmd.world_from_hmd(joint_transforms(body, body.rest_theta[None]))[0]
     head, forward = rest_hmd[:3, 3], -rest_hmd[:3, 2]
-    return Rig(character=character, cfg=cfg, appearance=appearance, clothing=clothing, hmd=hmd, cameras=cameras,
+    return Rig(subject=subject, cfg=cfg, appearance=appearance, hmd=hmd, cameras=cameras,
                held_out=held_out, lightstage=lightstage, envmaps=envmaps, train_envmaps=list(train),
                test_envmaps=list(user_envmaps) + [n for n in test if n not in user_envmaps],
                wild_envmaps=list(wild), wild_surroundings=wild_views, responses=responses,
@@ -207,10 +217,8 @@ def build_rig(cfg: Config, character: Character, user_envmaps: dict[str, np.ndar
 
 
 def write_rig(writer: ArtifactWriter, rig: Rig) -> None:
-    cams = [{**cam.to_dict(), "role": role} for cam, role in rig.cameras]
-    writer.save_json("rig/studio_cameras.json", {"cameras": cams})
+    writer.metrics.update(write_calibrations(writer, rig.cameras, rig.hmd, rig.cfg.calibration_error, int(rig.cfg.seed)))
     writer.save_json("rig/lights.json", rig.lightstage.to_json())
-    writer.save_json("rig/hmd.json", rig.hmd.to_json())
     writer.save_json("rig/board.json", board_json(rig.cfg.board))
     for name in rig.train_envmaps + rig.test_envmaps:
         write_envmap(writer.path(f"envmaps/{name}.exr"), rig.envmaps[name])
@@ -230,9 +238,12 @@ def write_global_truth(writer: ArtifactWriter, rig: Rig, offsets: dict[str, int]
     groundtruth.write_json(root / groundtruth.GT / "ego_response.json",
                            {role: r.to_dict() for role, r in rig.responses.items()})
     groundtruth.write_json(root / groundtruth.GT / "hmd_mount.json", {
-        "head_joint": rig.character.skeleton.joint_names[hmd.head_joint], "T_joint_from_hmd": hmd.T_joint_from_hmd.tolist()})
+        "head_joint": rig.subject.body.skeleton.joint_names[hmd.head_joint], "T_joint_from_hmd": hmd.T_joint_from_hmd.tolist()})
     groundtruth.write_json(root / groundtruth.GT / "board_pose.json", {"T_world_from_board": rig.board_pose.tolist()})
     groundtruth.write_appearance(root, rig.appearance)
+    groundtruth.write_json(root / groundtruth.GT / "subject.json", rig.subject.description)
+    write_ply(root / groundtruth.GT / "subject_rest.ply", rig.subject.rest_vertices().astype(np.float32),
+              rig.subject.faces)
 
 
 # ---------------------------------------------------------------------------------- sequences
@@ -264,20 +275,21 @@ def wild_place(cfg, head: np.ndarray) -> dict:
 
 def simulate_sequence(writer: ArtifactWriter, rig: Rig, plan: SequencePlan) -> dict:
     """Render and write one sequence; returns its metrics."""
-    cfg, character, hmd = rig.cfg, rig.character, rig.hmd
+    cfg, subject, hmd = rig.cfg, rig.subject, rig.hmd
+    body = subject.body
     seq = plan.name
     base = f"{SEQ}/{seq}"
     seed = int(np.random.SeedSequence([int(cfg.seed), SEQUENCES.index(seq) + 11]).generate_state(1)[0])
     rng = np.random.default_rng(seed)
     console.info(f"synth: {seq}: {plan.num_frames} frames")
-    beta_pose, beta_random = rig.clothing.deform(plan.theta, plan.fps, seed)
-    bodies = posed_bodies(character, plan.theta, beta_pose + beta_random)
-    G = joint_transforms(character, plan.theta)
-    keypoints = keypoint_positions(torch.as_tensor(plan.theta), character, torch.as_tensor(G)).numpy()
+    beta_pose, beta_random = subject.clothing.deform(plan.theta, plan.fps, seed)
+    G = joint_transforms(body, plan.theta)
+    bodies = subject.pose(plan.theta, beta_pose + beta_random, G)
+    keypoints = keypoint_positions(torch.as_tensor(plan.theta), body, torch.as_tensor(G)).numpy()
     head = hmd.world_from_hmd(G) if plan.hmd_on else None
     with_board = seq == "handeye"
     board = board_mesh(cfg.board) if with_board else None
-    layout = scene_layout(body_mesh(character, rig.appearance), hmd if plan.hmd_on else None, board)
+    layout = scene_layout(subject_mesh(subject, rig.appearance), hmd if plan.hmd_on else None, board)
     lightstage = rig.lightstage if plan.has_studio else _virtual_dome(cfg)
     renderer = FrameRenderer(layout, lightstage, int(cfg.render.exact_lights), rig.timer)
     backdrop = DomeBackdrop(rig.lightstage) if plan.has_studio else None
@@ -376,7 +388,7 @@ def _write_sequence_files(writer, rig: Rig, plan: SequencePlan, keypoints, bodie
         write_keypoints_npz(writer.path(f"{base}/mocap.npz"), mocap, source="synth markerless mocap")
     if not plan.has_studio:  # in the wild: the headset's own tracker, k samples per ego frame
         k = len(plan.tracker_theta) // plan.num_frames
-        head_fine = rig.hmd.world_from_hmd(joint_transforms(rig.character, plan.tracker_theta))
+        head_fine = rig.hmd.world_from_hmd(joint_transforms(rig.subject.body, plan.tracker_theta))
         tracked, truth = simulate_tracker(head_fine, k * plan.fps, cfg.wild.tracker, rng)
         sample_ids = np.full(len(tracked), -1, dtype=np.int64)
         sample_ids[::k] = ego_ids
@@ -391,7 +403,7 @@ def _write_sequence_files(writer, rig: Rig, plan: SequencePlan, keypoints, bodie
             "envmap": plan.wild_envmap, "yaw_deg": plan.wild_yaw_deg, **wild_place(cfg, head),
             "detail_height": int(cfg.wild.surroundings.height), "detail_strength": float(cfg.wild.surroundings.detail)})
     gt_ids = ids if plan.has_studio else ego_ids
-    groundtruth.write_sequence_truth(writer.workdir, seq, rig.character, gt_ids, ego_ids, plan.fps, plan.theta,
+    groundtruth.write_sequence_truth(writer.workdir, seq, rig.subject, gt_ids, ego_ids, plan.fps, plan.theta,
                                      keypoints, bodies, beta_pose, beta_random, head)
     lights = [{k: v for k, v in entry.items() if k != "content"} for entry in plan.lights]
     has_ego = plan.has_ego
@@ -424,13 +436,15 @@ def write_capture(writer: ArtifactWriter, cfg: Config, character: Character,
     started = time.perf_counter()
     rig = build_rig(cfg, character, user_envmaps or {})
     write_rig(writer, rig)
+    scan_vertices, scan_faces = scan_subject(rig.subject, cfg.scan, int(cfg.seed))
+    write_ply(writer.path("scan/scan.ply"), scan_vertices.astype(np.float32), scan_faces)
     offsets: dict[str, int] = {}
     metrics: dict = {}
     frames = 0
     for seq in cfg.sequences_enabled:
         if seq not in SEQUENCES:
             raise EgorelightError(f"unknown sequence {seq!r} in sequences_enabled; known: {', '.join(SEQUENCES)}")
-        plan = plan_sequence(seq, cfg, character, int(cfg.seed), rig.train_envmaps, rig.test_envmaps,
+        plan = plan_sequence(seq, cfg, rig.subject.body, int(cfg.seed), rig.train_envmaps, rig.test_envmaps,
                              rig.wild_envmaps, rig.held_out, motion_theta)
         if plan.ego_offset is not None and plan.has_studio:
             offsets[seq] = int(plan.ego_offset)

@@ -5,7 +5,9 @@ Global files::
     groundtruth/hand_eye.json        {role: {"T_cam_from_hmd": 4x4, "T_cam_from_hmd_nominal": 4x4}}
     groundtruth/streams.json         {seq: {"ego_offset": k}}: ego frame e <-> studio frame e + k
     groundtruth/ego_response.json    {role: CameraResponse.to_dict()} of every HMD camera
-    groundtruth/appearance.exr       UV maps: albedo.R/G/B, specular.Y, roughness.Y (+ material.Y)
+    groundtruth/appearance.exr       UV maps (the template's UV layout): albedo.R/G/B, specular.Y, roughness.Y,
+                                     material.Y, detail.X/Y/Z (tangent-space normal map of the sub-mesh detail)
+    groundtruth/subject.json         what the seed chose for the subject's body, rig and garments
     groundtruth/appearance.json      what the seed chose (skin tone, shirt pattern, ...)
     groundtruth/hmd_mount.json       head joint name and T_joint_from_hmd
     groundtruth/board_pose.json      T_world_from_board of the hand-eye sequence
@@ -15,9 +17,10 @@ Per sequence ``groundtruth/<seq>/``::
 
     motion.npz       motion payload (theta, dof_names, frame_ids, fps), standalone with __meta__
     keypoints.npz    keypoints payload (xyz, confidence = 1, frame_ids, names); __meta__ ego_frame_ids
-    meshes.npz       vertices (T,V,3) float32 true body surface, faces, theta, eg_rotation (0),
-                     eg_translation = clothing (pose part + random part), frame_ids
-    clothing.npz     node_translation_pose, node_translation_random (T,N,3) float32, frame_ids
+    meshes.npz       vertices (T,V',3) float32 the subject's true outer surface (skin + garments, its own
+                     topology), faces (F',3), face_uvs (F',3,2), garment_faces (F',) bool, theta, frame_ids
+    clothing.npz     displacement_pose, displacement_random (T,G,3) float16: the garment vertices'
+                     canonical displacements (pose part, random part), frame_ids
     head_pose.npz    T_world_from_hmd (T,4,4) float64, frame_ids, ego_frame_ids  (HMD worn)
     tracker.json     wild only: latency, drift (per tracker sample), the tracker's world offset
     surroundings.json  wild only: the map the HMD cameras see, its yaw, and the sphere it is on
@@ -38,8 +41,8 @@ from egorelight_cli.io.exr import write_exr_layers
 from egorelight_cli.io.keypoints import Keypoints, write_keypoints_npz
 from egorelight_cli.io.motion import Motion, write_motion_npz
 from egorelight_cli.io.npz import write_npz
-from egorelight_cli.structures.character import Character
 from egorelight_cli.synth.appearance import Appearance
+from egorelight_cli.synth.subject import Subject
 
 GT = "groundtruth"
 
@@ -50,33 +53,38 @@ def write_json(path: Path, data) -> None:
 
 
 def write_appearance(root: Path, appearance: Appearance) -> None:
-    write_exr_layers(root / GT / "appearance.exr", {
-        "albedo": appearance.albedo, "specular": appearance.specular, "roughness": appearance.roughness,
-        "material": appearance.material.astype(np.float32)[..., None]})
+    layers = {"albedo": appearance.albedo, "specular": appearance.specular, "roughness": appearance.roughness,
+              "material": appearance.material.astype(np.float32)[..., None]}
+    if appearance.normal_map is not None:
+        layers["detail"] = appearance.normal_map
+    write_exr_layers(root / GT / "appearance.exr", layers)
     write_json(root / GT / "appearance.json", appearance.description)
 
 
-def write_sequence_truth(root: Path, seq: str, character: Character, frame_ids: np.ndarray, ego_ids: np.ndarray,
-                         fps: float, theta: np.ndarray, keypoints: np.ndarray, bodies: np.ndarray,
-                         beta_pose: np.ndarray, beta_random: np.ndarray, head_poses: np.ndarray | None) -> None:
+def write_sequence_truth(root: Path, seq: str, subject: Subject, frame_ids: np.ndarray, ego_ids: np.ndarray,
+                         fps: float, theta: np.ndarray, keypoints: np.ndarray, surfaces: np.ndarray,
+                         displacement_pose: np.ndarray, displacement_random: np.ndarray,
+                         head_poses: np.ndarray | None) -> None:
     folder = root / GT / seq
     folder.mkdir(parents=True, exist_ok=True)
     frame_ids = np.asarray(frame_ids, dtype=np.int64)
-    write_motion_npz(folder / "motion.npz", Motion(theta, character.skeleton.dof_names, frame_ids, fps),
+    body = subject.body
+    write_motion_npz(folder / "motion.npz", Motion(theta, body.skeleton.dof_names, frame_ids, fps),
                      source="synth ground truth")
-    kp = Keypoints(keypoints, np.ones(keypoints.shape[:2], np.float32), frame_ids, character.keypoint_names, fps)
-    write_keypoints_npz(folder / "keypoints.npz", kp, source="synth ground truth",
+    kp = Keypoints(keypoints, np.ones(keypoints.shape[:2], np.float32), frame_ids, body.keypoint_names, fps)
+    write_keypoints_npz(folder / "keypoints.npz", kp, source="synth ground truth (the subject's own rig)",
                         ego_frame_ids=[int(e) for e in ego_ids])
-    beta = (beta_pose + beta_random).astype(np.float32)
     write_npz(folder / "meshes.npz", {
-        "vertices": bodies.astype(np.float32), "faces": character.faces.astype(np.int32), "theta": theta.astype(np.float32),
-        "eg_rotation": np.zeros_like(beta), "eg_translation": beta, "frame_ids": frame_ids, "ego_frame_ids": ego_ids,
-    }, {"kind": "egorelight/meshes", "version": 1, "units": {"vertices": "m", "eg_translation": "m"},
-        "frame_ids": frame_ids.tolist(), "fps": fps, "source": "synth ground truth (offsets are zero)"})
+        "vertices": surfaces.astype(np.float32), "faces": subject.faces.astype(np.int32),
+        "face_uvs": subject.face_uvs.astype(np.float32), "garment_faces": subject.garment_faces,
+        "theta": theta.astype(np.float32), "frame_ids": frame_ids, "ego_frame_ids": ego_ids,
+    }, {"kind": "egorelight/synth_surface", "version": 2, "units": {"vertices": "m"},
+        "frame_ids": frame_ids.tolist(), "fps": fps,
+        "source": "synth ground truth: the subject's outer surface (own topology; UVs in the template's layout)"})
     write_npz(folder / "clothing.npz", {
-        "node_translation_pose": beta_pose.astype(np.float32), "node_translation_random": beta_random.astype(np.float32),
-        "frame_ids": frame_ids,
-    }, {"kind": "egorelight/synth_clothing", "version": 1, "units": {"node_translation": "m (canonical space)"},
+        "displacement_pose": displacement_pose.astype(np.float16),
+        "displacement_random": displacement_random.astype(np.float16), "frame_ids": frame_ids,
+    }, {"kind": "egorelight/synth_clothing", "version": 2, "units": {"displacement": "m (canonical space)"},
         "frame_ids": frame_ids.tolist()})
     if head_poses is not None:
         write_npz(folder / "head_pose.npz", {"T_world_from_hmd": head_poses.astype(np.float64),

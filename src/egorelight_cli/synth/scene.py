@@ -1,4 +1,4 @@
-"""Posing the scene of a frame: the clothed body, the HMD on the head, the calibration board.
+"""Posing the scene of a frame: the clothed subject, the HMD on the head, the calibration board.
 
 The renderer sees one mesh per frame: the parts are concatenated in a fixed order (body, then
 the HMD when worn, then the board when present) with one texture atlas (:func:`pack_scene`), so
@@ -13,32 +13,21 @@ import numpy as np
 import torch
 
 from egorelight_cli.geometry.cameras import transform_points
-from egorelight_cli.geometry.embedded_graph import pose_character
 from egorelight_cli.geometry.skeleton import forward_kinematics
 from egorelight_cli.structures.character import Character
 from egorelight_cli.synth.appearance import Appearance
 from egorelight_cli.synth.hmd import Hmd
+from egorelight_cli.synth.subject import Subject
 from egorelight_cli.synth.textures import SceneAtlas, TexturedMesh, pack_scene
 
 BODY, HMD, BOARD = "body", "hmd", "board"
-_POSE_CHUNK = 64
 
 
-def body_mesh(character: Character, appearance: Appearance) -> TexturedMesh:
-    return TexturedMesh(vertices=character.vertices, faces=character.faces, face_uvs=character.face_uvs,
-                        albedo=appearance.albedo, specular=appearance.specular, roughness=appearance.roughness)
-
-
-def posed_bodies(character: Character, theta: np.ndarray, node_translation: np.ndarray) -> np.ndarray:
-    """(T,V,3) float32 true surfaces: DQS posing through the graph with the clothing node translations."""
-    out = np.empty((len(theta), character.num_vertices, 3), np.float32)
-    for start in range(0, len(theta), _POSE_CHUNK):
-        rows = slice(start, start + _POSE_CHUNK)
-        th = torch.as_tensor(np.asarray(theta[rows], dtype=np.float64))
-        beta = torch.as_tensor(np.asarray(node_translation[rows], dtype=np.float64))
-        out[rows] = pose_character(character, th, node_euler=torch.zeros_like(beta), node_translation=beta,
-                                   skinning="dqs").numpy()
-    return out
+def subject_mesh(subject: Subject, appearance: Appearance) -> TexturedMesh:
+    """The subject's outer surface (rest pose) with its textures and detail normal map."""
+    return TexturedMesh(vertices=subject.rest_vertices(), faces=subject.faces, face_uvs=subject.face_uvs,
+                        albedo=appearance.albedo, specular=appearance.specular, roughness=appearance.roughness,
+                        normal_map=appearance.normal_map)
 
 
 def joint_transforms(character: Character, theta: np.ndarray) -> np.ndarray:

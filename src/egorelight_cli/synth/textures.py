@@ -29,6 +29,7 @@ class TexturedMesh:
         albedo: (H,W,3) float32 linear albedo.
         specular: (H,W,1) float32 specular albedo.
         roughness: (H,W,1) float32 roughness.
+        normal_map: (H,W,3) float32 tangent-space normal map, or None (flat: (0,0,1)).
     """
 
     vertices: np.ndarray
@@ -37,6 +38,7 @@ class TexturedMesh:
     albedo: np.ndarray
     specular: np.ndarray
     roughness: np.ndarray
+    normal_map: np.ndarray | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -78,13 +80,20 @@ def pack_scene(meshes: list[TexturedMesh]) -> SceneAtlas:
     H, W = max(heights), sum(widths)
     layers = {"albedo": np.zeros((H, W, 3), np.float32), "specular": np.zeros((H, W, 1), np.float32),
               "roughness": np.ones((H, W, 1), np.float32)}
+    detailed = any(m.normal_map is not None for m in meshes)
+    if detailed:
+        layers["normal_map"] = np.zeros((H, W, 3), np.float32)
+        layers["normal_map"][..., 2] = 1.0
     uvs, faces = [], []
     vertex_offsets, face_offsets = [0], [0]
     x0 = 0
     for mesh, w in zip(meshes, widths):
         h_t, w_t = mesh.albedo.shape[:2]
         for name, layer in layers.items():
-            tile = _tile(getattr(mesh, name))
+            texture = getattr(mesh, name)
+            if texture is None:  # a mesh without a normal map: keep the flat (0,0,1) default
+                continue
+            tile = _tile(texture)
             padded = cv2.copyMakeBorder(tile, _PAD, _PAD, _PAD, _PAD, cv2.BORDER_REPLICATE)
             if padded.ndim == 2:
                 padded = padded[..., None]
@@ -98,7 +107,8 @@ def pack_scene(meshes: list[TexturedMesh]) -> SceneAtlas:
         vertex_offsets.append(vertex_offsets[-1] + len(mesh.vertices))
         face_offsets.append(face_offsets[-1] + len(mesh.faces))
         x0 += w
-    material = Material(albedo=layers["albedo"], specular=layers["specular"], roughness=layers["roughness"])
+    material = Material(albedo=layers["albedo"], specular=layers["specular"], roughness=layers["roughness"],
+                        normal_map=layers.get("normal_map"))
     return SceneAtlas(material=material, face_uvs=np.concatenate(uvs), faces=np.concatenate(faces),
                       vertex_offsets=np.asarray(vertex_offsets), face_offsets=np.asarray(face_offsets))
 
