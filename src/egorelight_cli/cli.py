@@ -106,7 +106,7 @@ def inspect_command(path: Path, as_json: bool) -> None:
 # ---------------------------------------------------------------------------------- character
 @cli.group("character")
 def character_group() -> None:
-    """Characters: the shipped default, DDC (Skeletool) import/export, previews."""
+    """Characters: the shipped default, DDC (Skeletool) import/export, previews, fit to a scan."""
 
 
 def _stage_run(ctx: click.Context, stage: str):
@@ -162,6 +162,19 @@ def character_import_ddc(ctx: click.Context, path: Path, out: Path) -> None:
 def character_export_ddc(ctx: click.Context, character: Path, out: Path, name: str) -> None:
     """Export a character artifact as DDC Skeletool files (.character, .skeleton, .skin, ...)."""
     _character_run(ctx).export_ddc(character, out, name)
+
+
+@character_group.command("fit-scan")
+@click.option("--scan", required=True, type=click.Path(path_type=Path),
+              help="Rest-pose scan of the subject: a PLY or OBJ triangle mesh, metres, +Y up, in the character's frame.")
+@click.option("--character", default="default", show_default=True,
+              help="Template: 'default', a character artifact, a character .npz or a DDC .character.")
+@click.option("--out", required=True, type=click.Path(path_type=Path), help="Artifact directory (or .npz file).")
+@common_options
+@click.pass_context
+def character_fit_scan(ctx: click.Context, scan: Path, character: str, out: Path) -> None:
+    """Register the template character to a scan: person-specific template, skeleton re-placed."""
+    _character_run(ctx).fit_scan(scan, character, out)
 
 
 @character_group.command("preview")

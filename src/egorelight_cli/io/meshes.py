@@ -55,7 +55,9 @@ def write_ply(path: str | Path, vertices: np.ndarray, faces: np.ndarray | None =
 
 
 def read_mesh(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
-    """(vertices (V,3) float64, faces (F,3) int64) of a PLY/OBJ, without merging or reordering."""
+    """(vertices (V,3) float64, faces (F,3) int64) of a PLY/OBJ, without merging or reordering.
+
+    A file holding only points (a point-cloud PLY) gives its points and (0,3) faces."""
     import trimesh
 
     path = Path(path)
@@ -63,6 +65,10 @@ def read_mesh(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
         raise EgorelightError("mesh not found", path)
     try:
         mesh = trimesh.load(path, process=False, force="mesh")
+        if len(mesh.vertices) == 0:
+            points = trimesh.load(path, process=False)
+            if isinstance(points, trimesh.PointCloud):
+                return np.asarray(points.vertices, dtype=np.float64), np.zeros((0, 3), np.int64)
     except Exception as exc:
         raise EgorelightError(f"cannot read mesh ({exc})", path) from None
-    return np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int64)
+    return np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int64).reshape(-1, 3)

@@ -1,4 +1,5 @@
-"""Preview images a person can look at: the character's rest pose with skeleton and keypoints."""
+"""Preview images a person can look at: the character's rest pose with skeleton and keypoints,
+and a template fitted to a scan coloured by its distance to it."""
 
 from __future__ import annotations
 
@@ -119,6 +120,66 @@ def character_preview_image(character: Character, width: int = 384, height: int 
     caption = (f"{character.name}: {character.num_vertices} verts, {character.skeleton.num_dofs} DoF, "
                f"{len(character.skin_bone_names)} bones, {character.graph.num_nodes} graph nodes")
     cv2.putText(image, caption, (8, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
+    return image
+
+
+# -------------------------------------------------------------- surfaces coloured by distance
+def distance_colours(distance: np.ndarray, max_distance: float) -> np.ndarray:
+    """(N,3) float32 RGB in [0,255] for distances (N,): blue (0) -> red (``max_distance`` and
+    more), OpenCV's JET map."""
+    level = np.clip(np.asarray(distance, np.float64) / max_distance, 0, 1) * 255
+    bgr = cv2.applyColorMap(level.astype(np.uint8)[:, None], cv2.COLORMAP_JET)[:, 0]
+    return bgr[:, ::-1].astype(np.float32)
+
+
+def shade_vertex_colours(vertices: np.ndarray, faces: np.ndarray, colours: np.ndarray, camera: Camera,
+                         ambient: float = 0.45) -> np.ndarray:
+    """(H,W,3) uint8: per-vertex RGB colours (V,3) in [0,255] interpolated over the faces, with
+    head-light Lambert shading (``ambient + (1 - ambient) |n.l|``) on white."""
+    raster = rasterize(vertices, faces, camera)
+    image = np.full((camera.height, camera.width, 3), 255.0, np.float32)
+    mask = raster.mask
+    corner = np.asarray(colours, np.float32)[np.asarray(faces)[raster.face_id[mask]]]  # (P,3,3)
+    colour = np.einsum("pkc,pk->pc", corner, raster.barycentrics[mask])
+    to_camera = camera.centre_world[None] - raster.points[mask]
+    to_camera /= np.linalg.norm(to_camera, axis=1, keepdims=True)
+    lambert = np.abs(np.sum(raster.normal[mask] * to_camera, axis=1))
+    image[mask] = colour * (ambient + (1.0 - ambient) * lambert)[:, None]
+    return np.clip(image, 0, 255).astype(np.uint8)
+
+
+def scan_fit_image(character: Character, scan_vertices: np.ndarray, scan_faces: np.ndarray, distance: np.ndarray,
+                   max_distance: float = 0.01, width: int = 384, height: int = 640) -> np.ndarray:
+    """(height, 3*width, 3) uint8 RGB: the scan (grey, front) and the character fitted to it
+    (front with its skeleton and keypoints, and side), coloured by ``distance`` (V,) metres of
+    each template vertex to the scan (blue 0 -> red ``max_distance``), with a caption."""
+    import torch
+
+    from egorelight_cli.geometry.skeleton import forward_kinematics, keypoint_positions
+
+    theta = torch.as_tensor(character.rest_theta, dtype=torch.float64)
+    T_world_from_joint = forward_kinematics(theta, character.skeleton)
+    keypoints = keypoint_positions(theta, character, T_world_from_joint).numpy()
+    forward = facing_direction(keypoints) if character.has_standard_keypoints else np.array([0.0, 0.0, -1.0])
+    side = np.cross(forward, [0.0, 1.0, 0.0])
+    both = np.concatenate([scan_vertices, character.vertices])
+    grey = np.full((len(scan_vertices), 3), 190.0, np.float32)
+    scan_view = shade_vertex_colours(scan_vertices, scan_faces, grey, framing_camera(both, -forward, width, height, "scan"))
+    colours = distance_colours(distance, max_distance)
+    views = [scan_view]
+    for name, view_dir in (("front", -forward), ("side", side)):
+        camera = framing_camera(both, view_dir, width, height, name)
+        image = shade_vertex_colours(character.vertices, character.faces, colours, camera)
+        if name == "front":
+            draw_skeleton(image, T_world_from_joint[..., :3, 3].numpy(), character.skeleton.parents,
+                          character.skeleton.joint_types, keypoints, camera)
+        views.append(image)
+    image = np.concatenate(views, axis=1)
+    lines = (f"scan ({len(scan_vertices)} verts) | {character.name} fitted: template->scan mean "
+             f"{1000 * float(np.mean(distance)):.1f} mm",
+             f"colour: distance to the scan, blue 0 -> red {100 * max_distance:g} cm")
+    for row, text in enumerate(lines):
+        cv2.putText(image, text, (8, 20 + 18 * row), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
     return image
 
 

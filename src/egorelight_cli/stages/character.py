@@ -722,7 +722,7 @@ def character_from_makehuman(data_dir: str | Path | None = None, target_vertices
         kp_joints.append(base_first[base])
 
     # --- embedded graph, segmentation ------------------------------------------------------------
-    graph = _embedded_graph(Vd, Fd, num_graph_nodes)
+    graph = embedded_graph_for(Vd, Fd, num_graph_nodes)
     segmentation, hand_segmentation = _segment(Vd, Wd, bone_names, P, left)
 
     files = {rel: _sha256(root / rel) for rel in (_BASE_OBJ, _VERTEX_GROUPS, _RIG, _WEIGHTS)}
@@ -755,7 +755,7 @@ def character_from_makehuman(data_dir: str | Path | None = None, target_vertices
     )
 
 
-def _embedded_graph(vertices: np.ndarray, faces: np.ndarray, num_nodes: int) -> EmbeddedGraph:
+def embedded_graph_for(vertices: np.ndarray, faces: np.ndarray, num_nodes: int) -> EmbeddedGraph:
     """About ``num_nodes`` nodes by farthest point sampling (deterministic), DDC graph weights."""
     node_vertex, node_edges, node_faces = choose_graph_nodes(vertices, faces, num_nodes)
     return build_embedded_graph(faces, len(vertices), node_vertex, node_edges, node_faces, vertices=vertices)

@@ -1,4 +1,5 @@
-"""The ``egorelight character`` commands: default, from-makehuman, import-ddc, export-ddc, preview.
+"""The ``egorelight character`` commands: default, from-makehuman, import-ddc, export-ddc, preview,
+fit-scan.
 
 A character artifact is a directory (or ``.npz`` + sidecar) holding ``character.npz`` (all
 arrays, see :class:`~egorelight_cli.structures.character.Character`) and ``template.obj`` for
@@ -158,6 +159,32 @@ class CharacterCommands:
         finally:
             shutil.rmtree(tmp, ignore_errors=True)
         return out_dir / f"{name}.character"
+
+    def fit_scan(self, scan: Path, character_spec: str, out: Path) -> Path:
+        """Register ``character_spec`` to the scan (:mod:`egorelight_cli.stages.character_fit`) and
+        write the fitted character with its fit metrics and ``preview.png``."""
+        from egorelight_cli.io.images import write_image
+        from egorelight_cli.render.preview import scan_fit_image
+        from egorelight_cli.stages.character_fit import fit_character_to_scan, fit_units, read_scan
+
+        if not scan.is_file():
+            raise EgorelightError("scan not found", scan)
+        character, artifact = load_character(character_spec)
+        sources = [scan] + character_sources(character_spec, artifact)
+
+        def write(w: ArtifactWriter, cfg: Config) -> None:
+            scan_vertices, scan_faces = read_scan(scan)
+            fit = fit_character_to_scan(character, scan_vertices, scan_faces, cfg.fit_scan, scan, seed=cfg.seed)
+            write_character(w, fit.character)
+            w.metrics.update(fit.metrics)
+            w.units.update(fit_units())
+            w.timing.update(fit.timing)
+            if not w.single_file:
+                write_image(w.path("preview.png"), scan_fit_image(
+                    fit.character, scan_vertices, scan_faces, fit.template_to_scan_m,
+                    width=cfg.preview_width, height=cfg.preview_height))
+        return self.run.produce(out, "character", write, inputs=[artifact] if artifact is not None else [],
+                                source_files=sources)
 
     def preview(self, character_path: Path, out: Path) -> Path:
         from egorelight_cli.io.images import write_image
