@@ -24,7 +24,7 @@ from egorelight_cli.errors import EgorelightError
 from egorelight_cli.geometry.equirect import equirect_bilinear_weights, equirect_solid_angles, yaw_rotation
 from egorelight_cli.render.lightstage import LightStage
 
-LIGHT_PATTERNS = ("flat", "flash", "dark", "olat", "envmap")
+LIGHT_PATTERNS = ("flat", "flash", "dark", "olat", "group", "envmap")
 
 
 def light_intensities(lightstage: LightStage, entry: Mapping, envmaps: Mapping[str, np.ndarray]) -> np.ndarray:
@@ -32,7 +32,8 @@ def light_intensities(lightstage: LightStage, entry: Mapping, envmaps: Mapping[s
 
     Args:
         lightstage: the capture's lights.
-        entry: ``{"pattern": ..., "scale": s, "olat_index": i, "envmap": name, "yaw_deg": yaw}``.
+        entry: ``{"pattern": ..., "scale": s, "olat_index": i, "envmap": name, "yaw_deg": yaw}``
+            (``"light_ids": [...]`` for ``group``: those lights at the flat level).
         envmaps: name -> (H,2H,3) map, for ``envmap`` patterns (e.g. :class:`CaptureEnvmaps`).
     """
     pattern, scale = entry.get("pattern"), float(entry.get("scale", 1.0))
@@ -42,6 +43,13 @@ def light_intensities(lightstage: LightStage, entry: Mapping, envmaps: Mapping[s
         return np.zeros((lightstage.num_lights, 3))
     if pattern == "olat":
         return lightstage.olat(int(entry["olat_index"]), scale)
+    if pattern == "group":
+        ids = np.asarray(entry.get("light_ids", []), dtype=np.int64)
+        if ids.size == 0 or ids.min() < 0 or ids.max() >= lightstage.num_lights:
+            raise EgorelightError(f"group light entry needs light_ids in 0..{lightstage.num_lights - 1}")
+        out = np.zeros((lightstage.num_lights, 3))
+        out[ids] = lightstage.flat(scale)[ids]
+        return out
     if pattern == "envmap":
         name = entry.get("envmap")
         if name not in envmaps:

@@ -34,8 +34,9 @@ Frame files are named by zero-padded frame id (``000012.exr``). ``sequence.json`
     {"name", "purpose": handeye|ego_train|relight_train|test|wild, "fps",
      "frame_ids": studio frame ids ([] without studio), "ego_frame_ids": ego frame ids ([] without ego),
      "content_frame_ids": studio frames after the standby/sync prefix,
-     "lights": per studio frame {"pattern": flat|envmap|olat|flash|dark, "envmap": name|null,
-                                 "yaw_deg", "olat_index": int|null, "scale"},
+     "lights": per studio frame {"pattern": flat|envmap|olat|group|flash|dark, "envmap": name|null,
+                                 "yaw_deg", "olat_index": int|null, "scale"
+                                 (+ "light_ids": [int] for group)},
      "streams": {"studio": [camera names], "masks", "normals", "recon", "mocap": bool,
                  "ego": [roles], "head_pose": bool},
      "held_out_cameras": [names] (test), "hmd_worn": bool, "board": bool,
@@ -43,7 +44,8 @@ Frame files are named by zero-padded frame id (``000012.exr``). ``sequence.json`
 
 A light entry's lighting condition (L,3) is ``scale * lights.flat(1)`` for ``flat``/``flash``, zero for
 ``dark``, ``scale * LightStage.envmap_to_intensities(envmaps/<envmap>.exr, yaw_deg)`` for ``envmap``
-(the paper's S(E)) and ``lights.olat(olat_index, scale)`` for ``olat``. Studio radiance is in the
+(the paper's S(E)), ``lights.olat(olat_index, scale)`` for ``olat`` and ``scale * lights.flat(1)`` on the
+lights ``light_ids`` only for ``group`` (the last frames of ``test`` are such an OLAT/group tail). Studio radiance is in the
 lights' units times ``studio.exposure`` (1: a flat-lit white Lambertian surface facing up reads ~1).
 
 Ego frame ``e`` of a sequence was exposed together with studio frame ``e + ego_offset``; the offset
@@ -260,7 +262,7 @@ def _studio_cameras_of(rig: Rig, plan: SequencePlan) -> list[tuple[Camera, str]]
     return out
 
 
-def _virtual_dome(cfg) -> LightStage:
+def virtual_dome(cfg) -> LightStage:
     """Distant lights standing in for the in-the-wild environment (its S(E))."""
     return LightStage.dome(num_lights=int(cfg.wild.render_lights), radius=float(cfg.wild.dome_radius_m),
                            min_elevation_deg=-89.0, centre=(0.0, 1.0, 0.0))
@@ -290,7 +292,7 @@ def simulate_sequence(writer: ArtifactWriter, rig: Rig, plan: SequencePlan) -> d
     with_board = seq == "handeye"
     board = board_mesh(cfg.board) if with_board else None
     layout = scene_layout(subject_mesh(subject, rig.appearance), hmd if plan.hmd_on else None, board)
-    lightstage = rig.lightstage if plan.has_studio else _virtual_dome(cfg)
+    lightstage = rig.lightstage if plan.has_studio else virtual_dome(cfg)
     renderer = FrameRenderer(layout, lightstage, int(cfg.render.exact_lights), rig.timer)
     backdrop = DomeBackdrop(rig.lightstage) if plan.has_studio else None
     cams = _studio_cameras_of(rig, plan)

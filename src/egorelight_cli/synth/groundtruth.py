@@ -6,7 +6,7 @@ Global files::
     groundtruth/streams.json         {seq: {"ego_offset": k}}: ego frame e <-> studio frame e + k
     groundtruth/ego_response.json    {role: CameraResponse.to_dict()} of every HMD camera
     groundtruth/appearance.exr       UV maps (the template's UV layout): albedo.R/G/B, specular.Y, roughness.Y,
-                                     material.Y, detail.X/Y/Z (tangent-space normal map of the sub-mesh detail)
+                                     material.Y, detail.R/G/B (tangent-space normal map x/y/z of the sub-mesh detail)
     groundtruth/subject.json         what the seed chose for the subject's body, rig and garments
     groundtruth/appearance.json      what the seed chose (skin tone, shirt pattern, ...)
     groundtruth/hmd_mount.json       head joint name and T_joint_from_hmd

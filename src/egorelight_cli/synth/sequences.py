@@ -102,6 +102,19 @@ def light_entry(pattern: str, scale: float = 1.0, envmap: str | None = None, yaw
             "scale": float(scale), "content": content}
 
 
+def light_tail(cfg, scfg, rng: np.random.Generator) -> list[dict]:
+    """The test sequence's robustness tail: ``olat_tail`` one-light-at-a-time frames (distinct
+    seeded lights, brightened by ``olat_scale``) then ``group_tail`` frames lit by a random quarter
+    of the lights."""
+    num_lights = int(cfg.lights.num_lights)
+    olat = rng.choice(num_lights, size=min(int(scfg.olat_tail), num_lights), replace=False)
+    out = [light_entry("olat", float(scfg.olat_scale), olat_index=int(i)) for i in olat]
+    for _ in range(int(scfg.group_tail)):
+        ids = np.sort(rng.choice(num_lights, size=max(num_lights // 4, 1), replace=False))
+        out.append({**light_entry("group", cfg.lights.flat_intensity), "light_ids": ids.tolist()})
+    return out
+
+
 def sync_prefix(cfg, rng: np.random.Generator) -> tuple[list[dict], int]:
     """Standby + flash code light entries, and the seeded ego offset."""
     offset = int(rng.integers(1, int(cfg.sync.max_offset) + 1))
@@ -172,6 +185,7 @@ def plan_sequence(name: str, cfg, character: Character | None, seed: int, train_
         for i in range(content):
             k = 0 if i < first else 1 + (i - first) * (n_maps - 1) // max(content - first, 1)
             lights.append(light_entry("envmap", cfg.lights.envmap_scale, envmap=test_envmaps[k], yaw_deg=yaws[k]))
+        lights += light_tail(cfg, scfg, rng)
     else:  # wild: no studio lights; the environment lights the subject
         if not wild_envmaps:
             raise EgorelightError("the wild sequence needs an environment map")
