@@ -49,8 +49,16 @@ PREVIEWS  := $(SUBJECT)/previews
 $(CAPTURE): $(STAMP)
 	$(EGO) $(EGOFLAGS) synth --out $(SUBJECT)/capture
 
+# the person-specific template: the default character registered to the capture's rest-pose scan
+# (issue 15; a real capture brings its own scan/scan.ply). CHARACTER_SOURCE=default skips the fit.
+CHARACTER_SOURCE ?= scan
+ifeq ($(CHARACTER_SOURCE),default)
 $(CHARACTER): $(STAMP)
 	$(EGO) $(EGOFLAGS) character default --out $(SUBJECT)/character
+else
+$(CHARACTER): $(CAPTURE)
+	$(EGO) $(EGOFLAGS) character fit-scan --scan $(SUBJECT)/capture/scan/scan.ply --out $(SUBJECT)/character
+endif
 
 $(PREVIEWS)/character.png: $(CHARACTER)
 	@mkdir -p $(PREVIEWS)

@@ -153,8 +153,8 @@ def test_make_passes_a_per_job_share(tmp_path, args, expected):
 
     root = Path(__file__).resolve().parents[1]
     target = tmp_path / "character" / "manifest.json"
-    result = subprocess.run(["make", "-n", *args, f"SUBJECT={tmp_path}", str(target)], cwd=root,
-                            capture_output=True, text=True)
+    result = subprocess.run(["make", "-n", *args, f"SUBJECT={tmp_path}", "CHARACTER_SOURCE=default", str(target)],
+                            cwd=root, capture_output=True, text=True)
     assert result.returncode == 0, result.stderr
     line = next(row for row in result.stdout.splitlines() if "character default" in row)
     assert ("--threads" not in line) if expected is None else (f"--threads {expected} " in line)
