@@ -47,6 +47,35 @@ def tiny_capture(tmp_path_factory) -> Path:
 
 
 @pytest.fixture(scope="session")
+def skinned_meshes(tiny_capture, tmp_path_factory) -> Path:
+    """Tracked meshes in the character's topology for every sequence of the tiny capture: the
+    default character posed with the TRUE motion by its own skinning (no graph offsets), as
+    ``<seq>.npz`` meshes payloads. The true surface is the subject's own (another topology), so
+    the appearance stages' tests drive them with these instead. Read-only."""
+    import numpy as np
+    import torch
+
+    from egorelight_cli.geometry.embedded_graph import pose_character
+    from egorelight_cli.io.mesh_sequence import MeshSequence, write_meshes_npz
+    from egorelight_cli.io.npz import read_npz
+
+    character = load_default_character()
+    out = tmp_path_factory.mktemp("skinned")
+    for folder in sorted((tiny_capture / "groundtruth").iterdir()):
+        if not (folder / "meshes.npz").is_file():
+            continue
+        arrays, _ = read_npz(folder / "meshes.npz")
+        theta = arrays["theta"].astype(np.float64)
+        vertices = pose_character(character, torch.as_tensor(theta), skinning="dqs").numpy().astype(np.float32)
+        T, N = len(theta), character.graph.num_nodes
+        zeros = np.zeros((T, N, 3), np.float32)
+        write_meshes_npz(out / f"{folder.name}.npz", MeshSequence(
+            vertices, character.faces.astype(np.int32), theta.astype(np.float32), zeros, zeros,
+            np.zeros_like(vertices), arrays["frame_ids"], ego_frame_ids=arrays.get("ego_frame_ids")))
+    return out
+
+
+@pytest.fixture(scope="session")
 def oracle_calibration(tiny_capture):
     """The tiny capture's calibration taken from its ground truth (for stages downstream of calibrate)."""
     from egorelight_cli.synth.groundtruth import oracle_calibration as from_groundtruth

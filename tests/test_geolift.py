@@ -75,11 +75,11 @@ def test_mean_texture_averages_what_each_texel_saw():
 
 
 @pytest.fixture(scope="module")
-def trained_geolift(tiny_capture, tmp_path_factory):
+def trained_geolift(tiny_capture, skinned_meshes, tmp_path_factory):
     from egorelight_cli.cli import main
 
     out = tmp_path_factory.mktemp("geolift") / "model"
-    meshes = tiny_capture / "groundtruth" / "relight_train" / "meshes.npz"
+    meshes = skinned_meshes / "relight_train.npz"
     with pytest.raises(SystemExit) as exit_info:
         main(["--preset", "tiny", "--set", "train.steps=30", "-q", "train", "geolift", "--capture", str(tiny_capture),
               "--meshes", str(meshes), "--out", str(out)])
@@ -98,9 +98,9 @@ def test_train_geolift_writes_a_model_with_baselines(trained_geolift):
     assert manifest["runtime"]["device"] == "cpu"
 
 
-def test_geolift_writes_uvmaps_with_lighting_features_and_scores(tiny_capture, trained_geolift, tmp_path, run,
-                                                                 character):
-    meshes_path = tiny_capture / "groundtruth" / "test" / "meshes.npz"
+def test_geolift_writes_uvmaps_with_lighting_features_and_scores(tiny_capture, skinned_meshes, trained_geolift,
+                                                                 tmp_path, run, character):
+    meshes_path = skinned_meshes / "test.npz"
     out = tmp_path / "uvmaps"
     result = run("--preset", "tiny", "geolift", "--meshes", meshes_path, "--model", trained_geolift,
                  "--capture", tiny_capture, "--seq", "test", "--out", out)
@@ -138,22 +138,21 @@ def test_geolift_writes_uvmaps_with_lighting_features_and_scores(tiny_capture, t
     assert json.loads((out / "manifest.json").read_text())["metrics"]["sequence"] == "relight_train"
 
 
-def test_train_geolift_pairs_meshes_with_sequences(tiny_capture, tmp_path, run):
-    gt = tiny_capture / "groundtruth"
+def test_train_geolift_pairs_meshes_with_sequences(tiny_capture, skinned_meshes, tmp_path, run):
     result = run("--preset", "tiny", "train", "geolift", "--capture", tiny_capture, "--meshes",
-                 gt / "relight_train" / "meshes.npz", "--meshes", gt / "ego_train" / "meshes.npz", "--seq",
+                 skinned_meshes / "relight_train.npz", "--meshes", skinned_meshes / "ego_train.npz", "--seq",
                  "relight_train", "--out", tmp_path / "m")
     assert result.returncode == 2 and "--seq" in result.stderr and len(result.stderr.strip().splitlines()) == 1
     result = run("--preset", "tiny", "-q", "--set", "train.steps=2", "train", "geolift", "--capture", tiny_capture,
-                 "--meshes", gt / "relight_train" / "meshes.npz", "--seq", "relight_train",
-                 "--meshes", gt / "ego_train" / "meshes.npz", "--seq", "ego_train", "--out", tmp_path / "both")
+                 "--meshes", skinned_meshes / "relight_train.npz", "--seq", "relight_train",
+                 "--meshes", skinned_meshes / "ego_train.npz", "--seq", "ego_train", "--out", tmp_path / "both")
     assert result.returncode == 0, result.stderr
     metrics = json.loads((tmp_path / "both" / "manifest.json").read_text())["metrics"]
     assert metrics["sequences"] == ["relight_train", "ego_train"] and metrics["validation_views"] > 0
 
 
-def test_geolift_errors_are_one_line(tiny_capture, trained_geolift, tmp_path, run):
-    meshes_path = tiny_capture / "groundtruth" / "test" / "meshes.npz"
+def test_geolift_errors_are_one_line(tiny_capture, skinned_meshes, trained_geolift, tmp_path, run):
+    meshes_path = skinned_meshes / "test.npz"
     other = tmp_path / "other.npz"
     meshes = read_meshes_npz(meshes_path)
     from egorelight_cli.io.mesh_sequence import MeshSequence, write_meshes_npz

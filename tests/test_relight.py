@@ -1,4 +1,5 @@
-"""train relight / relight through the CLI on the tiny capture (ground-truth meshes stand in for tracking)."""
+"""train relight / relight through the CLI on the tiny capture (the character skinned with the true motion
+stands in for tracking)."""
 
 from __future__ import annotations
 
@@ -21,23 +22,22 @@ def _main(*args) -> int:
 
 
 @pytest.fixture(scope="module")
-def relight_inputs(tiny_capture, tmp_path_factory):
+def relight_inputs(tiny_capture, skinned_meshes, tmp_path_factory):
     """A tiny geolift model and uvmaps (with lighting features) of relight_train and test."""
     root = tmp_path_factory.mktemp("relight")
-    gt = tiny_capture / "groundtruth"
     assert _main("--preset", "tiny", "-q", "train", "geolift", "--capture", tiny_capture, "--meshes",
-                 gt / "relight_train" / "meshes.npz", "--out", root / "geolift") == 0
+                 skinned_meshes / "relight_train.npz", "--out", root / "geolift") == 0
     for seq in ("relight_train", "test"):
-        assert _main("--preset", "tiny", "-q", "geolift", "--meshes", gt / seq / "meshes.npz", "--model",
+        assert _main("--preset", "tiny", "-q", "geolift", "--meshes", skinned_meshes / f"{seq}.npz", "--model",
                      root / "geolift", "--capture", tiny_capture, "--seq", seq, "--out", root / f"uvmaps_{seq}") == 0
     return root
 
 
 @pytest.fixture(scope="module")
-def relight_model(tiny_capture, relight_inputs):
+def relight_model(tiny_capture, skinned_meshes, relight_inputs):
     out = relight_inputs / "relight"
     assert _main("--preset", "tiny", "-q", "--set", "train.steps=40", "train", "relight", "--capture", tiny_capture,
-                 "--meshes", tiny_capture / "groundtruth" / "relight_train" / "meshes.npz", "--uvmaps",
+                 "--meshes", skinned_meshes / "relight_train.npz", "--uvmaps",
                  relight_inputs / "uvmaps_relight_train", "--out", out) == 0
     return out
 
@@ -52,10 +52,11 @@ def test_a_tiny_relight_training_lowers_its_loss(relight_model):
     assert metrics["val_lpips"] is None and "VGG" in metrics["id_mrf"]
 
 
-def test_relight_renders_held_out_cameras_and_scores_them(tiny_capture, relight_inputs, relight_model, tmp_path):
+def test_relight_renders_held_out_cameras_and_scores_them(tiny_capture, skinned_meshes, relight_inputs, relight_model,
+                                                          tmp_path):
     out = tmp_path / "renders"
     code = _main("--preset", "tiny", "-q", "relight", "--capture", tiny_capture, "--meshes",
-                 tiny_capture / "groundtruth" / "test" / "meshes.npz", "--uvmaps", relight_inputs / "uvmaps_test",
+                 skinned_meshes / "test.npz", "--uvmaps", relight_inputs / "uvmaps_test",
                  "--model", relight_model, "--seq", "test", "--export", "ply", "--out", out)
     assert code == 0
     manifest = json.loads((out / "manifest.json").read_text())
@@ -78,16 +79,17 @@ def test_relight_renders_held_out_cameras_and_scores_them(tiny_capture, relight_
     assert len(gaussians) > 100 and (rgb >= 0).all() and (rgb <= 1).all()
     # --cameras all is another output, not "up to date"
     code = _main("--preset", "tiny", "-q", "relight", "--capture", tiny_capture, "--meshes",
-                 tiny_capture / "groundtruth" / "test" / "meshes.npz", "--uvmaps", relight_inputs / "uvmaps_test",
+                 skinned_meshes / "test.npz", "--uvmaps", relight_inputs / "uvmaps_test",
                  "--model", relight_model, "--seq", "test", "--export", "ply", "--cameras", "all", "--out", out)
     assert code == 0
     assert len(json.loads((out / "manifest.json").read_text())["metrics"]["cameras"]) > len(sequence["held_out_cameras"])
 
 
-def test_relight_needs_lighting_features(tiny_capture, relight_inputs, relight_model, tmp_path, capsys):
+def test_relight_needs_lighting_features(tiny_capture, skinned_meshes, relight_inputs, relight_model, tmp_path,
+                                         capsys):
     # uvmaps made without --capture carry no rho/chi: a one-line error, no output
     plain = tmp_path / "plain_uvmaps"
-    gt = tiny_capture / "groundtruth" / "test" / "meshes.npz"
+    gt = skinned_meshes / "test.npz"
     assert _main("--preset", "tiny", "-q", "geolift", "--meshes", gt, "--model", relight_inputs / "geolift",
                  "--out", plain) == 0
     capsys.readouterr()

@@ -185,10 +185,7 @@ class GeoliftCommands:
             if writer.single_file:
                 raise EgorelightError("a uvmaps artifact is a directory (it holds EXR maps): give --out a directory",
                                       out)
-            exposure = 1.0
-            if capture_artifact is not None:
-                exposure = float(capture_artifact.manifest.get("config", {}).get("studio", {}).get("exposure", 1.0))
-            write_uvmaps(writer, cfg, model, extra, character, meshes, capture, sequence, exposure)
+            write_uvmaps(writer, cfg, model, extra, character, meshes, capture, sequence)
 
         return self.run.produce(out, "uvmaps", write, inputs=inputs, source_files=sources,
                                 options={"sequence": seq if capture is not None else None})

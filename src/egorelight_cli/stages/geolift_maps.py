@@ -52,8 +52,7 @@ def _texture_image(maps: np.ndarray, coverage: np.ndarray) -> np.ndarray:
 
 
 def write_uvmaps(writer: ArtifactWriter, cfg: Config, model: GeoLiftNet, extra: dict, character: Character,
-                 meshes: MeshSequence, capture: Capture | None, sequence: SequenceInfo | None,
-                 exposure: float) -> None:
+                 meshes: MeshSequence, capture: Capture | None, sequence: SequenceInfo | None) -> None:
     """Run GeoLift on every mesh frame and write maps, features, metrics and the preview."""
     from egorelight_cli.stages.geolift_commands import PREVIEW_PNG, map_path
 
@@ -67,8 +66,7 @@ def write_uvmaps(writer: ArtifactWriter, cfg: Config, model: GeoLiftNet, extra: 
     lit_frames = set(int(f) for f in sequence.frame_ids) if lit else set()
     truth = None
     if capture is not None and sequence is not None:
-        truth = GeoLiftTruth(capture, sequence.name, raster, character.faces, len(character.vertices),
-                             float(extra.get("flat_scale", 1.0)), exposure)
+        truth = GeoLiftTruth(capture, sequence.name, raster)
     scores = GeoLiftScores()
     T = meshes.num_frames
     preview_at = set(np.linspace(0, T - 1, max(min(int(cfg.preview.frames), T), 1)).round().astype(int).tolist())
@@ -92,8 +90,8 @@ def write_uvmaps(writer: ArtifactWriter, cfg: Config, model: GeoLiftNet, extra: 
         write_exr_layers(writer.path(map_path(f)), layers)
         truth_normals = None
         if truth is not None and truth.has(f):
-            truth_normals, truth_texture = truth.frame(f)
-            scores.add(coverage, normals, normal_maps[t], texture, mean_texture, truth_normals, truth_texture)
+            truth_normals, truth_texture, valid = truth.frame(f)
+            scores.add(coverage, normals, normal_maps[t], texture, mean_texture, truth_normals, truth_texture, valid)
         if t in preview_at:
             tiles = [_normal_image(normal_maps[t], coverage), _normal_image(normals, coverage),
                      _texture_image(texture, coverage)]

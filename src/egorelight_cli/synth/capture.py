@@ -121,6 +121,7 @@ from egorelight_cli.synth.sensors import (
 )
 from egorelight_cli.synth.sequences import SEQUENCES, SequencePlan, plan_sequence
 from egorelight_cli.synth.tracker import simulate_tracker
+from egorelight_cli.synth.uv_truth import UV_TRUTH, UVTruth
 
 SEQ = "sequences"
 
@@ -148,6 +149,14 @@ class Rig:
     responses: dict[str, CameraResponse]
     board_pose: np.ndarray
     timer: Timer = field(default_factory=Timer)
+    _uv_truth: UVTruth | None = None
+
+    def uv_truth(self) -> UVTruth:
+        """The UV ground-truth builder of the subject (made on first use)."""
+        if self._uv_truth is None:
+            self._uv_truth = UVTruth(self.subject, self.appearance, self.lightstage, float(self.cfg.lights.flat_intensity),
+                                     float(self.cfg.studio.exposure), int(self.cfg.groundtruth.uv_resolution))
+        return self._uv_truth
 
 
 @dataclass
@@ -374,6 +383,11 @@ def simulate_sequence(writer: ArtifactWriter, rig: Rig, plan: SequencePlan) -> d
         if tiles:
             preview_rows.append(tiles)
     _write_sequence_files(writer, rig, plan, keypoints, bodies, beta_pose, beta_random, head, cams, rng)
+    if plan.has_studio and seq in list(cfg.groundtruth.uv_sequences):
+        started = time.perf_counter()
+        scored = np.flatnonzero(content)[::max(int(cfg.groundtruth.uv_frame_stride), 1)]
+        rig.uv_truth().write(writer.workdir / groundtruth.GT / seq / UV_TRUTH, bodies[scored], plan.frame_ids[scored])
+        rig.timer.add("uv_truth", time.perf_counter() - started)
     _write_preview(writer, rig, plan, preview_rows)
     return stats.metrics()
 

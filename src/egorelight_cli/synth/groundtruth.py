@@ -22,6 +22,8 @@ Per sequence ``groundtruth/<seq>/``::
     clothing.npz     displacement_pose, displacement_random (T,G,3) float16: the garment vertices'
                      canonical displacements (pose part, random part), frame_ids
     head_pose.npz    T_world_from_hmd (T,4,4) float64, frame_ids, ego_frame_ids  (HMD worn)
+    uv_truth.npz     studio sequences in ``groundtruth.uv_sequences``: true UV normals with the detail and
+                     the true flat-lit diffuse texture per content frame (:mod:`egorelight_cli.synth.uv_truth`)
     tracker.json     wild only: latency, drift (per tracker sample), the tracker's world offset
     surroundings.json  wild only: the map the HMD cameras see, its yaw, and the sphere it is on
                      (radius_m, centre) around the wearer

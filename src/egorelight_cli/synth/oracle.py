@@ -34,6 +34,7 @@ from egorelight_cli.render.lighting import light_intensities
 from egorelight_cli.render.lightstage import LightStage
 from egorelight_cli.render.shading import RenderResult
 from egorelight_cli.synth import groundtruth
+from egorelight_cli.synth.calibration_error import STUDIO_TRUTH, read_true_studio_cameras
 from egorelight_cli.synth.hmd import make_hmd
 from egorelight_cli.synth.scene import BODY, HMD, place, scene_layout
 from egorelight_cli.synth.sensors import FrameRenderer, Timer
@@ -80,14 +81,15 @@ class Oracle:
 
     # ----------------------------------------------------------------------------- inputs
     def studio_camera(self, name: str) -> Camera:
-        """A studio camera by name with its TRUE parameters."""
-        path = self.root / groundtruth.GT / "studio_cameras.json"
-        if not path.is_file():
-            path = self.root / "rig" / "studio_cameras.json"
-        for doc in json.loads(path.read_text())["cameras"]:
-            if doc["name"] == name:
-                return Camera.from_dict(doc)
-        raise EgorelightError(f"the capture has no studio camera {name!r}", path)
+        """A studio camera by name with its TRUE parameters (the rig's when the capture has no
+        calibration error recorded)."""
+        truth = self.root / groundtruth.GT / STUDIO_TRUTH
+        cameras = read_true_studio_cameras(self.root) if truth.is_file() else {
+            doc["name"]: Camera.from_dict(doc)
+            for doc in json.loads((self.root / "rig" / "studio_cameras.json").read_text())["cameras"]}
+        if name not in cameras:
+            raise EgorelightError(f"the capture has no studio camera {name!r}", truth)
+        return cameras[name]
 
     def _sequence(self, seq: str) -> dict:
         if seq not in self._meshes:
