@@ -46,6 +46,14 @@ def animate_inputs(tiny_capture, tmp_path_factory):
             "capture": Path(tiny_capture)}
 
 
+@pytest.fixture(scope="module")
+def retopologized_capture(tiny_capture, tmp_path_factory) -> Path:
+    """The tiny capture with a true surface of another topology (:mod:`retopologize`)."""
+    from retopologize import subdivided_truth_capture
+
+    return subdivided_truth_capture(tiny_capture, tmp_path_factory.mktemp("retopologized") / "capture")
+
+
 def _run(*args):
     from egorelight_cli.cli import main
 
@@ -63,28 +71,59 @@ def test_training_a_few_steps_lowers_the_chamfer_loss(animate_inputs):
     assert (animate_inputs["model"] / "model.pt").is_file() and (animate_inputs["model"] / "curve.png").is_file()
 
 
-def test_animate_writes_meshes_metrics_preview_and_export(animate_inputs, character):
-    from egorelight_cli.io.mesh_sequence import load_meshes
-
+@pytest.fixture(scope="module")
+def animated(animate_inputs) -> Path:
+    """``animate`` of the test motion with the tiny capture's ground truth (scored), PLY export."""
     out = animate_inputs["root"] / "meshes"
     code = _run("--preset", "tiny", "-q", "animate", "--motion", animate_inputs["motion"], "--pointcloud",
                 animate_inputs["cloud"], "--model", animate_inputs["model"], "--capture", animate_inputs["capture"],
                 "--export", "ply", "--out", out)
     assert code == 0
+    return out
+
+
+def test_animate_writes_meshes_metrics_preview_and_export(animated, character):
+    from egorelight_cli.io.mesh_sequence import load_meshes
+    from egorelight_cli.stages.animate_eval import SCORED
+
+    out = animated
     meshes, artifact = load_meshes(out)
     assert artifact is not None and artifact.kind == "meshes"
     T = meshes.num_frames
     assert T == 4 and meshes.vertices.shape == (T, character.num_vertices, 3)
     assert meshes.eg_rotation.shape == (T, character.graph.num_nodes, 3) and meshes.offsets.shape == meshes.vertices.shape
     metrics = _metrics(out)
+    # a sanity range: the simulated subject is not the character (issue 15), a tiny model is far off
     for variant in ("skinning", "no_depth", "full"):
-        for region in ("p2s_cm", "p2s_ego_visible_cm"):
-            value = metrics[f"{variant}_{region}"]
-            assert np.isfinite(value) and 0 <= value < 2.0, (variant, region, value)
-    assert metrics["eval_frames"] == 4 and metrics["ego_visible_vertices_per_frame"] > 200
+        for measure in SCORED:
+            value = metrics[f"{variant}_p2s_{measure}_cm"]
+            assert np.isfinite(value) and 0 <= value < 8.0, (variant, measure, value)
+        assert metrics[f"{variant}_p2s_cm"] == metrics[f"{variant}_p2s_pred_to_true_cm"]
+        assert metrics[f"{variant}_p2s_ego_visible_cm"] == metrics[f"{variant}_p2s_ego_visible_pred_to_true_cm"]
+    for key in [f"p2s_{measure}_cm" for measure in SCORED] + ["p2s_cm", "p2s_ego_visible_cm"]:
+        assert metrics[key] == metrics[f"full_{key}"]
+    assert metrics["eval_frames"] == 4 and 0.05 < metrics["ego_visible_true_area_fraction"] < 0.6
     assert metrics["xi_vertices_per_frame"] > 200  # the GT cloud explains many template vertices
     assert (out / "preview.png").is_file()
     assert sorted(p.name for p in (out / "export").iterdir()) == [f"{int(f):06d}.ply" for f in meshes.frame_ids]
+
+
+def test_animate_scores_against_a_truth_of_another_topology(animate_inputs, animated, retopologized_capture):
+    out = animate_inputs["root"] / "meshes_retopologized"
+    code = _run("--preset", "tiny", "-q", "animate", "--motion", animate_inputs["motion"], "--pointcloud",
+                animate_inputs["cloud"], "--model", animate_inputs["model"], "--capture", retopologized_capture,
+                "--out", out)
+    assert code == 0
+    metrics, reference = _metrics(out), _metrics(animated)
+    assert metrics["eval_frames"] == reference["eval_frames"] == 4
+    # the subdivided truth is the same surface: the same distances, whatever its tessellation
+    for variant in ("skinning", "no_depth", "full"):
+        for direction, tolerance in (("pred_to_true", 0.01), ("true_to_pred", 0.02)):
+            for region in ("", "ego_visible_"):
+                key = f"{variant}_p2s_{region}{direction}_cm"
+                assert metrics[key] == pytest.approx(reference[key], abs=tolerance), key
+    assert metrics["ego_visible_true_area_fraction"] == pytest.approx(reference["ego_visible_true_area_fraction"],
+                                                                      abs=0.02)
 
 
 def test_no_depth_ablation_needs_no_cloud(animate_inputs):
@@ -114,7 +153,9 @@ def test_depth_agnostic_student_fine_tunes_on_flat_lit_relight_frames(animate_in
                 "--model", out, "--capture", animate_inputs["capture"], "--seq", "relight_train", "--out", meshes)
     assert code == 0
     scores = _metrics(meshes)
-    assert scores["no_depth_p2s_cm"] < 5.0 and scores["p2s_ego_visible_cm"] is None  # no ego view: NaN -> null
+    assert scores["no_depth_p2s_cm"] < 5.0 and scores["no_depth_p2s_true_to_pred_cm"] < 5.0
+    for key in ("p2s_ego_visible_cm", "p2s_ego_visible_pred_to_true_cm", "p2s_ego_visible_true_to_pred_cm"):
+        assert scores[key] is None  # no ego view: NaN -> null
 
 
 def _one_line_error(capsys, code: int, *fragments: str) -> None:

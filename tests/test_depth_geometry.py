@@ -130,6 +130,25 @@ def test_surface_distance_is_exact_on_a_plane():
     np.testing.assert_allclose(SurfaceDistance(v, f)(points), np.abs(points[:, 1]), atol=1e-9)
 
 
+def test_surface_distance_closest_face_matches_brute_force():
+    from trimesh.triangles import closest_point
+
+    rng = np.random.default_rng(2)
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.3)
+    v = sphere.vertices + rng.normal(scale=0.01, size=sphere.vertices.shape)
+    f = np.asarray(sphere.faces)
+    surface = v[f[rng.integers(len(f), size=300)]].mean(axis=1)
+    points = surface * rng.uniform(0.8, 1.2, size=(300, 1))  # within ~6 cm of the surface
+    point, face, distance = SurfaceDistance(v, f).closest(points)
+    # every point against every face
+    triangles = np.repeat(v[f][None], len(points), axis=0).reshape(-1, 3, 3)
+    every = closest_point(triangles, np.repeat(points, len(f), axis=0))
+    brute = np.linalg.norm(every - np.repeat(points, len(f), axis=0), axis=1).reshape(len(points), len(f))
+    np.testing.assert_allclose(distance, brute.min(axis=1), atol=1e-9)
+    np.testing.assert_allclose(brute[np.arange(len(points)), face], brute.min(axis=1), atol=1e-9)
+    np.testing.assert_allclose(np.linalg.norm(point - points, axis=1), distance, atol=1e-9)
+
+
 def test_depth_edges_mark_silhouettes_and_jumps():
     r = np.full((8, 8), 1.0)
     r[:, 4:] = 2.0

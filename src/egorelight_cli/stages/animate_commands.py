@@ -10,9 +10,12 @@ pointcloud artifact; it writes a model artifact (``model.pt``, ``curve.json``, `
 ``animate`` reads a motion, a point cloud (unless ``--no-depth``) and a model and writes a
 meshes artifact (``meshes.npz``, see :mod:`egorelight_cli.io.mesh_sequence`), ``preview.png``
 and, with ``--export ply|obj``, one mesh file per frame under ``export/``. With ``--capture``
-(and the capture has ``groundtruth/``), the manifest's metrics hold the point-to-surface
-distance (cm) to the true meshes over the full body and over the surface the down-facing ego
-cameras see, for (a) skinning only, (b) the network without depth and (c) with depth.
+(and the capture has ``groundtruth/``), the manifest's metrics hold point-to-surface distances
+(cm) between the meshes and the true surface, whatever its topology, both ways
+(``pred_to_true``: accuracy; ``true_to_pred``: completeness), over the full body and over the
+surface the down-facing ego cameras see, for (a) skinning only, (b) the network without depth
+and (c) with depth (keys in :func:`~egorelight_cli.stages.animate_eval.score_meshes`; the
+un-prefixed ``p2s_*`` keys repeat the stage's own mesh).
 ``--calibration`` adds the meshes drawn over the ego images to the preview.
 """
 
@@ -248,20 +251,18 @@ class AnimateCommands:
 # ---------------------------------------------------------------------------------- scoring
 def _score(writer: ArtifactWriter, capture: Capture, sequence: str, model: AnimationModel, meshes: MeshSequence,
            template, uv_inputs: torch.Tensor, no_depth: bool, preview_count: int) -> dict[int, np.ndarray] | None:
-    """Ground-truth metrics (a) skinning, (b) no depth, (c) full; distances of the preview frames."""
+    """Ground-truth metrics (a) skinning, (b) no depth, (c) full, against a truth of any
+    topology (:func:`~egorelight_cli.stages.animate_eval.score_meshes`); per-vertex pred->true
+    distances (cm) of the preview frames."""
     from egorelight_cli.stages.animate import XI_CHANNELS
-    from egorelight_cli.stages.animate_eval import (groundtruth_meshes, point_to_surface_cm, score_meshes,
-                                                     visibility_of_truth)
+    from egorelight_cli.stages.animate_eval import SCORED, groundtruth_meshes, score_meshes, true_surfaces
     from egorelight_cli.synth.groundtruth import oracle_calibration
 
     truth = groundtruth_meshes(capture, sequence)
     if truth is None:
         return None
-    if truth.vertices.shape[1] != meshes.vertices.shape[1]:
-        console.info("ground-truth meshes have another topology than the character: no metrics")
-        return None
     calibration = oracle_calibration(capture.root)
-    visible = visibility_of_truth(capture, calibration, sequence, truth, meshes.frame_ids)
+    surfaces = true_surfaces(capture, calibration, sequence, truth, meshes.frame_ids)
     predictions = {"skinning": template.vertices.astype(np.float32)}
     if no_depth:
         predictions["no_depth"] = meshes.vertices
@@ -270,22 +271,30 @@ def _score(writer: ArtifactWriter, capture: Capture, sequence: str, model: Anima
         blind[:, XI_CHANNELS] = 0.0
         predictions["no_depth"] = model.predict(blind, meshes.theta)["vertices"]
         predictions["full"] = meshes.vertices
-    scores = score_meshes(predictions, meshes.frame_ids, truth, visible)
+    scores = score_meshes(predictions, meshes.faces, meshes.frame_ids, surfaces)
     mine = "no_depth" if no_depth else "full"
-    scores["p2s_cm"] = scores[f"{mine}_p2s_cm"]
-    scores["p2s_ego_visible_cm"] = scores[f"{mine}_p2s_ego_visible_cm"]
-    scores["ego_visible_vertices_per_frame"] = float(np.mean([v.sum() for v in visible.values()])) if visible else 0.0
+    for key in [f"p2s_{measure}_cm" for measure in SCORED] + ["p2s_cm", "p2s_ego_visible_cm"]:
+        scores[key] = scores[f"{mine}_{key}"]
+    scores["ego_visible_true_area_fraction"] = (float(np.mean([s.visible_area_fraction for s in surfaces.values()]))
+                                                if surfaces else 0.0)
     writer.metrics.update(scores)
-    writer.units.update({"p2s_cm": "cm, mean distance of predicted vertices to the true surface",
-                         "p2s_ego_visible_cm": "cm, same over true vertices seen by the down-facing ego cameras"})
+    writer.units.update({
+        "p2s_pred_to_true_cm": "cm, mean distance of the predicted (outer) vertices to the true (outer) surface",
+        "p2s_true_to_pred_cm": "cm, area-weighted mean distance of the true (outer) surface to the predicted (outer) "
+                               "surface",
+        "p2s_ego_visible_pred_to_true_cm": "cm, pred->true over the predicted vertices whose closest true point "
+                                           "the down-facing ego cameras see",
+        "p2s_ego_visible_true_to_pred_cm": "cm, true->pred over the true surface the down-facing ego cameras see",
+        "p2s_cm": "cm, = p2s_pred_to_true_cm (earlier name)",
+        "p2s_ego_visible_cm": "cm, = p2s_ego_visible_pred_to_true_cm (earlier name)",
+        "ego_visible_true_area_fraction": "fraction of the true outer surface's area the down cameras see"})
     from egorelight_cli.stages.ik_commands import preview_frames
 
     distances = {}
     for row in preview_frames(meshes.num_frames, int(preview_count)):
         fid = int(meshes.frame_ids[row])
-        if fid in visible:
-            gt = truth.vertices[truth.index_of(int(fid))]
-            distances[int(fid)] = point_to_surface_cm(meshes.vertices[row], gt, truth.faces)
+        if fid in surfaces:
+            distances[fid] = surfaces[fid].distance_cm(meshes.vertices[row])[0]
     return distances
 
 

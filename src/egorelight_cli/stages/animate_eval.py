@@ -1,13 +1,27 @@
-"""Scoring the animation stage against a simulated capture's ground truth (evaluation only).
+"""Scoring geometry against a simulated capture's true surface, of any topology (evaluation only).
 
 Nothing here is on a stage's input path: it reads ``capture/groundtruth/`` (true meshes, the
 oracle calibration) to score meshes, and builds a ground-truth point cloud for tests and
 experiments while the ``egodepth`` stage is not available.
 
-* :func:`ego_visible_vertices`: which ground-truth vertices the down-facing ego cameras see
-  (inside the image, facing the camera, not occluded: an Embree ray cast per vertex);
-* :func:`point_to_surface_cm`: distance of predicted vertices to the true surface (exact,
-  :class:`~egorelight_cli.geometry.pointcloud_ops.SurfaceDistance`);
+The truth is read without assuming anything about its topology (:func:`groundtruth_meshes`: the
+``vertices`` (T,V',3), ``faces`` (F',3) and ``frame_ids`` of ``groundtruth/<seq>/meshes.npz``,
+nothing else): the subject may have its own tessellation, a body skin with separate garment
+sheets over it, or be a real capture's reconstruction. Every distance is point-to-surface
+(:class:`~egorelight_cli.geometry.pointcloud_ops.SurfaceDistance`), never vertex to vertex,
+and its direction is in the metric's name:
+
+* :func:`outer_faces`: the faces of a mesh that face the outside world. Skin under a garment
+  is no surface a camera, a reconstruction or a clothed prediction can show, a closed pocket
+  (a mouth cavity) neither: metrics compare the outer surface of a prediction with the outer
+  surface of the truth;
+* :class:`OuterSurface`: that outer surface of one mesh, points spread uniformly by area over
+  it (the quadrature of true->pred) and which of them the down-facing ego cameras see;
+* :func:`score_meshes`: predicted->true and true->predicted distances (cm) of several
+  predictions, over the whole body and over the ego-visible surface;
+* :func:`ego_visible_points` / :func:`ego_visible_vertices`: which points the down-facing ego
+  cameras see (inside the image, unoccluded: an Embree ray cast per point; no facing test, so
+  garment sheets of either winding count);
 * :func:`groundtruth_pointcloud`: ray-cast the true mesh from the down cameras, add noise along
   the rays, and return a :class:`~egorelight_cli.io.pointcloud.PointCloudSequence`.
 """
@@ -20,20 +34,29 @@ import numpy as np
 
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.geometry.cameras import Camera, camera_rays_world, project_world
-from egorelight_cli.geometry.normals import face_normals, vertex_normals
+from egorelight_cli.geometry.normals import face_normals
 from egorelight_cli.geometry.pointcloud_ops import SurfaceDistance
 from egorelight_cli.geometry.raycast import RayCaster
 from egorelight_cli.io.calibration import posed_ego_camera
 from egorelight_cli.io.capture import Capture
-from egorelight_cli.io.mesh_sequence import MeshSequence, read_meshes_npz
+from egorelight_cli.io.mesh_sequence import SurfaceSequence, read_surface_npz
 
 VISIBILITY_OFFSET_M = 2e-3
+# outer_faces: rays leave a face's centroid this far off the face, along the normal and along
+# rings of directions at these polar angles (degrees) and counts around it, on either side.
+OUTER_LIFT_M = 1e-4
+OUTER_RINGS = ((40.0, 6), (75.0, 8))
+# points per true surface and frame for the true->pred mean (standard error ~1% of the mean)
+SURFACE_SAMPLES = 10000
+# what score_meshes measures per prediction: <name>_p2s_<measure>_cm
+SCORED = ("pred_to_true", "true_to_pred", "ego_visible_pred_to_true", "ego_visible_true_to_pred")
 
 
-def groundtruth_meshes(capture: Capture, sequence: str) -> MeshSequence | None:
-    """The true mesh sequence of ``sequence`` or None when the capture has no ground truth."""
+def groundtruth_meshes(capture: Capture, sequence: str) -> SurfaceSequence | None:
+    """The true surface sequence of ``sequence`` (any topology) or None when the capture has no
+    ground truth."""
     path = capture.groundtruth_file(sequence, "meshes.npz")
-    return None if path is None else read_meshes_npz(path)
+    return None if path is None else read_surface_npz(path)
 
 
 def down_cameras(capture: Capture, calibration, sequence: str, frame_id: int) -> list[Camera]:
@@ -45,82 +68,206 @@ def down_cameras(capture: Capture, calibration, sequence: str, frame_id: int) ->
     return out
 
 
-def ego_visible_vertices(vertices: np.ndarray, faces: np.ndarray, cameras: list[Camera]) -> np.ndarray:
-    """(V,) bool: vertex seen by at least one camera (in the image, front-facing, unoccluded)."""
-    vertices = np.asarray(vertices, np.float64)
-    normals = vertex_normals(vertices, faces)
-    caster = RayCaster(vertices, faces)
-    visible = np.zeros(len(vertices), bool)
+def ego_visible_points(points: np.ndarray, caster: RayCaster, cameras: list[Camera]) -> np.ndarray:
+    """(N,) bool: point (N,3) on the mesh of ``caster`` seen by at least one camera (projects
+    inside its image, and the segment from the point lifted ``VISIBILITY_OFFSET_M`` towards the
+    camera to the camera's centre hits nothing). No facing test: a point on the far side of a
+    closed body is hidden by the body itself, and an open sheet is seen from either side."""
+    points = np.asarray(points, np.float64)
+    visible = np.zeros(len(points), bool)
     for cam in cameras:
-        pixels, valid = project_world(cam, vertices, return_valid=True)
+        pixels, valid = project_world(cam, points, return_valid=True)
         pixels = np.asarray(pixels)
         inside = np.asarray(valid) & (pixels[:, 0] >= -0.5) & (pixels[:, 0] <= cam.width - 0.5) \
             & (pixels[:, 1] >= -0.5) & (pixels[:, 1] <= cam.height - 0.5)
-        to_cam = cam.centre_world[None] - vertices
+        to_cam = cam.centre_world[None] - points
         dist = np.linalg.norm(to_cam, axis=1)
-        facing = np.sum(normals * to_cam, axis=1) > 0
-        todo = np.flatnonzero(inside & facing & ~visible)
+        todo = np.flatnonzero(inside & ~visible & (dist > VISIBILITY_OFFSET_M))
         if todo.size:
-            origin = vertices[todo] + VISIBILITY_OFFSET_M * to_cam[todo] / dist[todo, None]
+            origin = points[todo] + VISIBILITY_OFFSET_M * to_cam[todo] / dist[todo, None]
             blocked = caster.occluded(origin, to_cam[todo], max_dist=dist[todo] - VISIBILITY_OFFSET_M)
             visible[todo[~blocked]] = True
     return visible
 
 
-def point_to_surface_cm(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """(P,) exact distances (cm) from points (P,3) to the triangle mesh (vertices, faces)."""
-    return 100.0 * SurfaceDistance(vertices, faces)(points)
+def ego_visible_vertices(vertices: np.ndarray, faces: np.ndarray, cameras: list[Camera]) -> np.ndarray:
+    """(V,) bool: vertex of the mesh (vertices, faces) seen by at least one camera
+    (:func:`ego_visible_points`)."""
+    vertices = np.asarray(vertices, np.float64)
+    return ego_visible_points(vertices, RayCaster(vertices, faces), cameras)
 
 
-def score_meshes(predicted: dict[str, np.ndarray], frame_ids: np.ndarray, truth: MeshSequence,
-                 visible: dict[int, np.ndarray]) -> dict[str, float]:
-    """Mean point-to-surface distance (cm) of several predictions of the same frames.
+def _hemisphere_directions(normals: np.ndarray) -> np.ndarray:
+    """(K,N,3) unit directions around each unit normal (N,3): the normal, then ``OUTER_RINGS``."""
+    helper = np.where(np.abs(normals[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    t1 = np.cross(normals, helper)
+    t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
+    t2 = np.cross(normals, t1)
+    out = [normals]
+    for ring, (polar_deg, count) in enumerate(OUTER_RINGS):
+        polar = np.radians(polar_deg)
+        for k in range(count):
+            azimuth = 2 * np.pi * (k + 0.5 * ring) / count
+            out.append(np.cos(polar) * normals + np.sin(polar) * (np.cos(azimuth) * t1 + np.sin(azimuth) * t2))
+    return np.stack(out)
 
-    Args:
-        predicted: name -> (T,V,3) vertices (the character's topology, same as the truth's).
-        frame_ids: (T,) studio ids; frames absent from the truth are skipped.
-        truth: the true meshes.
-        visible: frame id -> (V,) bool ego-visible true vertices.
-    Returns:
-        ``{<name>_p2s_cm, <name>_p2s_ego_visible_cm}`` plus ``eval_frames``.
+
+def outer_faces(vertices: np.ndarray, faces: np.ndarray, caster: RayCaster | None = None) -> np.ndarray:
+    """(F,) bool: faces on the outside of the mesh: from the centroid, on one side of the face or
+    the other, at least one ray (the normal and ``OUTER_RINGS`` around it) leaves the mesh without
+    hitting it. Skin under a garment is enclosed (the garment on one side, the body on the other)
+    and is not outer; a closed body alone is outer everywhere but in crevices no ray leaves.
+    Faces of zero area are not outer. Winding does not matter.
     """
-    sums = {name: [0.0, 0, 0.0, 0] for name in predicted}
-    frames = 0
-    for row, fid in enumerate(np.asarray(frame_ids)):
-        if fid not in truth.frame_ids:
-            continue
-        frames += 1
-        gt = truth.vertices[truth.index_of(int(fid))]
-        seen = visible[int(fid)]
-        for name, verts in predicted.items():
-            d = point_to_surface_cm(verts[row], gt, truth.faces)
-            s = sums[name]
-            s[0] += d.sum(); s[1] += d.size
-            s[2] += d[seen].sum(); s[3] += int(seen.sum())
-    out: dict[str, float] = {"eval_frames": frames}
-    for name, (total, count, vis_total, vis_count) in sums.items():
-        out[f"{name}_p2s_cm"] = float(total / count) if count else float("nan")
-        out[f"{name}_p2s_ego_visible_cm"] = float(vis_total / vis_count) if vis_count else float("nan")
-    return out
+    vertices = np.asarray(vertices, np.float64)
+    faces = np.asarray(faces, np.int64)
+    caster = caster or RayCaster(vertices, faces)
+    tri = vertices[faces]
+    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    double_area = np.linalg.norm(cross, axis=1)
+    solid = np.flatnonzero(double_area > 0)
+    normals = cross[solid] / double_area[solid, None]
+    centroids = tri[solid].mean(axis=1)
+    outer = np.zeros(len(faces), bool)
+    todo = np.arange(len(solid))
+    for directions in _hemisphere_directions(normals):
+        for side in (1.0, -1.0):
+            if not todo.size:
+                return outer
+            origin = centroids[todo] + side * OUTER_LIFT_M * normals[todo]
+            free = ~caster.occluded(origin, side * directions[todo])
+            outer[solid[todo[free]]] = True
+            todo = todo[~free]
+    return outer
 
 
-def visibility_of_truth(capture: Capture, calibration, sequence: str, truth: MeshSequence,
-                        frame_ids: np.ndarray) -> dict[int, np.ndarray]:
-    """Frame id -> (V,) ego-visible true vertices for the frames of ``frame_ids`` in the truth.
+class OuterSurface:
+    """The outer part (:func:`outer_faces`) of one triangle mesh, as every metric here sees a
+    surface, the truth's and a prediction's alike: a metric compares what a camera could see of
+    one with what it could see of the other, so hidden skin under a garment and closed pockets
+    (a mouth cavity) count on neither side.
+
+    Visibility is decided at the very points measured (a ray from each point to the cameras,
+    :func:`ego_visible_points`), never per face or vertex, so it does not depend on the
+    tessellation either.
+
+    Attributes:
+        faces: (K,3) the outer faces (rows of ``faces``).
+        vertex_outer: (V,) bool, vertex of an outer face.
+        distance: :class:`SurfaceDistance` to the outer faces.
+        samples: (S,3) points spread uniformly by area over the outer faces (``samples`` of them,
+            the same barycentric positions on every frame of one topology: ``seed``).
+        sample_visible: (S,) bool, sample seen by ``cameras`` (all False without cameras).
+
+    ``caster``: a :class:`RayCaster` of the same mesh when the caller has one.
+    """
+
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray, cameras: list[Camera] = (),
+                 caster: RayCaster | None = None, samples: int = SURFACE_SAMPLES, seed: int = 0):
+        vertices = np.asarray(vertices, np.float64)
+        faces = np.asarray(faces, np.int64)
+        self.caster = caster or RayCaster(vertices, faces)
+        self.cameras = list(cameras)
+        self.faces = faces[outer_faces(vertices, faces, self.caster)]
+        if not len(self.faces):
+            raise EgorelightError("the mesh has no outer face")
+        self.vertex_outer = np.zeros(len(vertices), bool)
+        self.vertex_outer[self.faces.reshape(-1)] = True
+        self.distance = SurfaceDistance(vertices, self.faces)
+        tri = vertices[self.faces]
+        areas = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+        rng = np.random.default_rng(seed)
+        face = rng.choice(len(tri), size=int(samples), p=areas / areas.sum())
+        self.samples = np.einsum("sk,skd->sd", rng.dirichlet(np.ones(3), size=int(samples)), tri[face])
+        self.sample_visible = self.seen(self.samples)
+
+    def seen(self, points: np.ndarray) -> np.ndarray:
+        """(P,) bool: points (P,3) on this mesh seen by its cameras."""
+        if not self.cameras:
+            return np.zeros(len(points), bool)
+        return ego_visible_points(points, self.caster, self.cameras)
+
+    @property
+    def visible_area_fraction(self) -> float:
+        return float(self.sample_visible.mean())
+
+    def distance_cm(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Distances (P,) cm of points (P,3) to the outer surface, and (P,) bool: the closest
+        point is seen by the cameras."""
+        closest, _, distance = self.distance.closest(points)
+        return 100.0 * distance, self.seen(closest)
+
+
+def true_surfaces(capture: Capture, calibration, sequence: str, truth: SurfaceSequence,
+                  frame_ids: np.ndarray) -> dict[int, OuterSurface]:
+    """Frame id -> the true :class:`OuterSurface` for the frames of ``frame_ids`` in the truth,
+    its ego visibility from the down cameras placed by ``calibration``.
 
     A sequence without head poses (the HMD is not worn, e.g. ``relight_train``) has no ego view:
-    every vertex is then unseen (the ego-visible metrics are NaN, the full-body ones still hold).
+    nothing is ego-visible (the ego-visible metrics are NaN, the full-body ones still hold).
     """
     worn = sequence in calibration.head_poses
     out = {}
     for fid in np.asarray(frame_ids):
         if fid in truth.frame_ids:
-            vertices = truth.vertices[truth.index_of(int(fid))]
-            if not worn:
-                out[int(fid)] = np.zeros(len(vertices), bool)
-                continue
-            cams = down_cameras(capture, calibration, sequence, int(fid))
-            out[int(fid)] = ego_visible_vertices(vertices, truth.faces, cams)
+            cameras = down_cameras(capture, calibration, sequence, int(fid)) if worn else []
+            out[int(fid)] = OuterSurface(truth.vertices[truth.index_of(int(fid))], truth.faces, cameras)
+    return out
+
+
+def score_meshes(predicted: dict[str, np.ndarray], faces: np.ndarray, frame_ids: np.ndarray,
+                 surfaces: dict[int, OuterSurface]) -> dict[str, float]:
+    """Point-to-surface distances (cm) between several predictions of the same frames and the
+    truth, both ways; the predictions' topology (``faces``) and the truth's are independent. Both
+    sides are their outer surfaces (:class:`OuterSurface`).
+
+    Args:
+        predicted: name -> (T,V,3) vertices of the mesh ``faces``.
+        faces: (F,3) predicted triangles.
+        frame_ids: (T,) studio ids; frames without a true surface in ``surfaces`` are skipped.
+        surfaces: frame id -> the true :class:`OuterSurface` (:func:`true_surfaces`).
+    Returns:
+        ``eval_frames`` and, per name (all frames pooled):
+
+        * ``<name>_p2s_pred_to_true_cm`` (accuracy): mean over the predicted (outer) vertices of
+          their distance to the true surface;
+        * ``<name>_p2s_true_to_pred_cm`` (completeness): mean over the true surface (its
+          area-uniform samples) of the distance to the predicted surface;
+        * ``<name>_p2s_ego_visible_pred_to_true_cm``: the first, over the predicted vertices whose
+          closest true point the down-facing ego cameras see;
+        * ``<name>_p2s_ego_visible_true_to_pred_cm``: the second, over the ego-visible true surface;
+        * ``<name>_p2s_cm`` / ``<name>_p2s_ego_visible_cm``: the two pred->true values under
+          the names they had when the truth had to share the character's topology (the
+          ego-visible vertices were then picked by vertex index); kept for continuity.
+
+        NaN where a region is empty (no ego view).
+    """
+    sums = {f"{name}_p2s_{measure}_cm": [0.0, 0.0] for name in predicted for measure in SCORED}
+
+    def add(key: str, values: np.ndarray) -> None:
+        sums[key][0] += float(values.sum())
+        sums[key][1] += len(values)
+
+    frames = 0
+    for row, fid in enumerate(np.asarray(frame_ids)):
+        truth = surfaces.get(int(fid))
+        if truth is None:
+            continue
+        frames += 1
+        for name, vertices in predicted.items():
+            prediction = OuterSurface(vertices[row], faces, samples=0)
+            to_true, seen = truth.distance_cm(np.asarray(vertices[row])[prediction.vertex_outer])
+            to_pred, _ = prediction.distance_cm(truth.samples)
+            add(f"{name}_p2s_pred_to_true_cm", to_true)
+            add(f"{name}_p2s_ego_visible_pred_to_true_cm", to_true[seen])
+            add(f"{name}_p2s_true_to_pred_cm", to_pred)
+            add(f"{name}_p2s_ego_visible_true_to_pred_cm", to_pred[truth.sample_visible])
+    out: dict[str, float] = {"eval_frames": frames}
+    for key, (total, weight) in sums.items():
+        out[key] = float(total / weight) if weight > 0 else float("nan")
+    for name in predicted:
+        out[f"{name}_p2s_cm"] = out[f"{name}_p2s_pred_to_true_cm"]
+        out[f"{name}_p2s_ego_visible_cm"] = out[f"{name}_p2s_ego_visible_pred_to_true_cm"]
     return out
 
 

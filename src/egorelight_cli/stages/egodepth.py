@@ -24,8 +24,9 @@ normals.
   (the true body mesh ray-cast into the ego view; where the frame has a reconstruction, only
   pixels where it agrees within ``eval.occluder_margin_m``: elsewhere the headset, which is not
   in the body mesh, hides the body), coverage of that mask, and the point-to-surface
-  distance (cm) of the fused points to the true mesh; for the network and, with
-  ``eval.compare_sgbm``, for SGBM on the same frames.
+  distance (cm) of the fused points to the true mesh's outer surface (``point_to_surface_cm``:
+  the points->true direction only, a partial view has no completeness; any topology of the
+  truth); for the network and, with ``eval.compare_sgbm``, for SGBM on the same frames.
 """
 
 from __future__ import annotations
@@ -39,7 +40,7 @@ import torch
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.geometry.cameras import Camera, invert_rigid
 from egorelight_cli.geometry.depth import camera_ray_map, depth_edges, range_to_depth, render_depth, unproject_depth
-from egorelight_cli.geometry.pointcloud_ops import SurfaceDistance, fixed_size_cloud, fuse_views
+from egorelight_cli.geometry.pointcloud_ops import fixed_size_cloud, fuse_views
 from egorelight_cli.geometry.raycast import RayCaster
 from egorelight_cli.io.calibration import Calibration, posed_ego_camera
 from egorelight_cli.io.capture import Capture, SequenceInfo
@@ -423,26 +424,28 @@ class DepthErrors:
 
 
 class GroundTruth:
-    """The true body surface per frame (``groundtruth/<seq>/meshes.npz``), for scoring only."""
+    """The true body surface per frame (``groundtruth/<seq>/meshes.npz``, any topology), for
+    scoring only."""
 
     def __init__(self, capture: Capture, sequence: SequenceInfo, occluder_margin_m: float):
-        from egorelight_cli.io.npz import read_npz
+        from egorelight_cli.stages.animate_eval import groundtruth_meshes
 
-        path = capture.groundtruth_file(sequence.name, "meshes.npz")
-        self.available = path is not None
+        truth = groundtruth_meshes(capture, sequence.name)
+        self.available = truth is not None
         self.sequence = sequence
         self.margin = occluder_margin_m
         if self.available:
-            arrays, _ = read_npz(path)
-            self.vertices, self.faces = arrays["vertices"], arrays["faces"]
-            self.frame_ids = np.asarray(arrays["frame_ids"], np.int64)
+            self.vertices, self.faces, self.frame_ids = truth.vertices, truth.faces, truth.frame_ids
 
     def has(self, frame_id: int) -> bool:
         return self.available and bool(np.any(self.frame_ids == frame_id))
 
     def frame(self, frame_id: int, views: Sequence[EgoView]):
-        """(SurfaceDistance of the true mesh, {role: (true range (H,W), body mask (H,W))})."""
+        """(SurfaceDistance to the true mesh's outer surface (the points->true direction,
+        :class:`~egorelight_cli.stages.animate_eval.OuterSurface`), {role: (true range (H,W),
+        body mask (H,W))})."""
         from egorelight_cli.io.meshes import read_mesh
+        from egorelight_cli.stages.animate_eval import OuterSurface
 
         i = int(np.nonzero(self.frame_ids == frame_id)[0][0])
         caster = RayCaster(self.vertices[i], self.faces)
@@ -459,7 +462,7 @@ class GroundTruth:
                 seen = render_depth(v.camera, recon)
                 mask &= seen.front_facing & (np.abs(seen.range - truth.range) < self.margin)
             maps[v.role] = (truth.range, mask)
-        return SurfaceDistance(self.vertices[i], self.faces), maps
+        return OuterSurface(self.vertices[i], self.faces, caster=caster).distance, maps
 
 
 # ----------------------------------------------------------------------------------- previews
