@@ -278,3 +278,20 @@ def test_bad_inputs(stage):
                     vertex_visibility=np.ones((3, 331), bool))
     with pytest.raises(EgorelightError):
         shade(np.zeros((2, 3)), np.zeros((2, 3)), np.zeros((2, 3)), 0.5, np.ones((2, 7)), stage, stage.flat(1.0))
+
+
+def test_facing_visibility_skips_lights_behind_and_matches_the_full_trace(stage):
+    """Only lights in front of a point's tangent plane are traced; those agree with the full trace,
+    and on a closed convex surface the full trace already finds every light behind occluded."""
+    import trimesh
+
+    from egorelight_cli.render.shading import facing_light_visibility
+
+    sphere = trimesh.creation.icosphere(subdivisions=2, radius=0.3)
+    vertices = sphere.vertices + stage.centre
+    caster = RayCaster(vertices, sphere.faces)
+    full = light_visibility(caster, vertices, sphere.vertex_normals, stage)
+    facing = facing_light_visibility(caster, vertices, sphere.vertex_normals, stage)
+    front = sphere.vertex_normals @ stage.positions.T - np.sum(sphere.vertex_normals * vertices, 1, keepdims=True) > 0
+    np.testing.assert_array_equal(facing[front], full[front])
+    assert not facing[~front].any() and not full[~front].any() and facing[front].mean() > 0.9

@@ -37,7 +37,7 @@ from egorelight_cli.errors import EgorelightError
 from egorelight_cli.geometry.raycast import RayCaster
 from egorelight_cli.render.lightstage import LightStage
 from egorelight_cli.render.raster import UVRaster, texels_to_surface, vertex_normals
-from egorelight_cli.render.shading import SHADOW_EPS, light_visibility
+from egorelight_cli.render.shading import SHADOW_EPS, facing_light_visibility
 
 DEFAULT_SHININESS = 32.0  # alpha of the importance score (the paper leaves it open: only the order matters)
 _CHUNK_TEXELS = 8192
@@ -85,10 +85,11 @@ def texel_surface(uv_raster: UVRaster, vertices: np.ndarray, faces: np.ndarray) 
 
 def texel_visibility(vertices: np.ndarray, faces: np.ndarray, surface: TexelSurface, lightstage: LightStage,
                      delta: float = SHADOW_EPS, caster: RayCaster | None = None) -> np.ndarray:
-    """(N,L) bool: the light is visible from ``p' + delta n̄`` (Eq. ``optix``), occluders = the mesh itself."""
+    """(N,L) bool: the light is visible from ``p' + delta n̄`` (Eq. ``optix``), occluders = the mesh itself;
+    lights behind the texel's tangent plane are not visible (no ray cast)."""
     if caster is None:
         caster = RayCaster(np.asarray(vertices, dtype=np.float64), np.asarray(faces, dtype=np.int64))
-    return light_visibility(caster, surface.points, surface.normals, lightstage, eps=delta)
+    return facing_light_visibility(caster, surface.points, surface.normals, lightstage, eps=delta)
 
 
 def light_transfer(points: np.ndarray, normals: np.ndarray, lightstage: LightStage,
