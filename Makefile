@@ -198,12 +198,19 @@ subject: $(CAPTURE) $(CHARACTER) $(PREVIEWS)/character.png $(CALIBRATION) \
 	$(SUBJECT)/meshes/$(SEQ)/manifest.json $(ANIMATE_STUDENT) $(SUBJECT)/uvmaps/$(SEQ)/manifest.json \
 	$(SUBJECT)/renders/$(SEQ)/manifest.json
 
-demo: subject
+# one HTML page for the subject (reads the artifacts only); after every artifact `subject` makes,
+# and again when any finished artifact's manifest is newer
+REPORT := $(SUBJECT)/report/index.html
+$(REPORT): $(wildcard $(SUBJECT)/*/manifest.json $(SUBJECT)/*/*/manifest.json) | subject
+	$(EGO) report $(SUBJECT)
+
+demo: subject $(REPORT)
 	@echo
-	@echo "egorelight demo finished (preset $(PRESET)). Results in $(SUBJECT)/:"
+	@echo "egorelight demo finished (preset $(PRESET)). Report: $(REPORT)"
+	@echo "Results in $(SUBJECT)/:"
 	@for m in $$(find $(SUBJECT) -name manifest.json | sort); do echo "  $$(dirname $$m)"; done
 	@echo "Previews:"
-	@find $(SUBJECT) -name '*.png' -path '*preview*' | sort | sed 's/^/  /'
+	@find $(SUBJECT) -name '*.png' -path '*preview*' -not -path '$(SUBJECT)/report/*' | sort | sed 's/^/  /'
 	@echo "Inspect any artifact with: $(EGO) inspect <path>"
 
 clean:

@@ -93,10 +93,11 @@ def oracle_calibration_artifact(tiny_capture, tmp_path_factory) -> Path:
 
 @dataclass
 class Result:
-    """What a CLI run ended with: exit code and stderr."""
+    """What a CLI run ended with: exit code, stderr and stdout."""
 
     returncode: int
     stderr: str
+    stdout: str = ""
 
 
 @pytest.fixture
@@ -111,5 +112,6 @@ def run(capsys):
             code = 0
         except SystemExit as exc:
             code = int(exc.code or 0)
-        return Result(code, capsys.readouterr().err)
+        captured = capsys.readouterr()
+        return Result(code, captured.err, captured.out)
     return invoke

@@ -314,6 +314,23 @@ def remove_stale_temporaries(path: str | Path) -> list[Path]:
     return removed
 
 
+def replace_directory(workdir: Path, out: Path) -> None:
+    """Move the finished directory ``workdir`` (a :func:`temporary_sibling` of ``out``) to ``out``
+    after syncing it to disk; a previous ``out`` directory is swapped aside and removed, so
+    ``out`` is at every moment either the old or the new directory."""
+    _fsync_tree(workdir)
+    old = None
+    if out.exists():
+        if not out.is_dir():
+            raise EgorelightError("output exists and is not a directory", out)
+        old = temporary_sibling(out, "old")
+        os.replace(out, old)
+    os.replace(workdir, out)
+    _fsync_dir(out.parent)
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
+
+
 def output_error(exc: OSError, out: str | Path) -> EgorelightError:
     """A one-line error for an output that cannot be written (read-only, name too long, ...)."""
     return EgorelightError(f"cannot write the output ({exc.strerror or exc})", exc.filename or out)
@@ -496,17 +513,7 @@ class ArtifactWriter:
 
     def _commit_directory(self, manifest: dict) -> None:
         (self.workdir / MANIFEST_NAME).write_text(json.dumps(manifest, indent=2) + "\n")
-        _fsync_tree(self.workdir)
-        old = None
-        if self.out.exists():
-            if not self.out.is_dir():
-                raise EgorelightError("output exists and is not a directory", self.out)
-            old = temporary_sibling(self.out, "old")
-            os.replace(self.out, old)
-        os.replace(self.workdir, self.out)
-        _fsync_dir(self.out.parent)
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
+        replace_directory(self.workdir, self.out)
 
     def _commit_single(self, manifest: dict) -> None:
         sidecar = self.out.with_name(self.out.name + SIDECAR_SUFFIX)

@@ -13,7 +13,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
 
 from egorelight_cli.errors import EgorelightError
@@ -45,17 +44,14 @@ class ModelPayload:
 def write_model(root: str | Path, payload: ModelPayload, curve_title: str | None = None) -> list[Path]:
     """Write ``model.pt``, ``curve.json`` and ``curve.png`` into directory ``root``."""
     from egorelight_cli.io.images import write_image
-    from egorelight_cli.render.plots import line_plot
+    from egorelight_cli.render.plots import curve_plot
 
     root = Path(root)
     state = {k: v.detach().cpu().contiguous() for k, v in payload.state_dict.items()}
     torch.save({"stage": payload.stage, "architecture": payload.architecture, "state_dict": state,
                 "extra": payload.extra}, root / MODEL_FILE)
     (root / CURVE_JSON).write_text(json.dumps(payload.curve, indent=1) + "\n")
-    names = sorted({k for row in payload.curve for k in row if k != "step"})
-    series = {n: (np.array([r["step"] for r in payload.curve if n in r]),
-                  np.array([r[n] for r in payload.curve if n in r])) for n in names}
-    write_image(root / CURVE_PNG, line_plot(series, title=curve_title or f"{payload.stage} training"))
+    write_image(root / CURVE_PNG, curve_plot(payload.curve, curve_title or f"{payload.stage} training"))
     return [root / MODEL_FILE, root / CURVE_JSON, root / CURVE_PNG]
 
 

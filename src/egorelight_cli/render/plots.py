@@ -52,3 +52,18 @@ def line_plot(series: dict[str, tuple[np.ndarray, np.ndarray]], title: str = "",
                     (0, 0, 0), 1, cv2.LINE_AA)
     cv2.putText(image, x_label, (width // 2 - 15, height - 8), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1)
     return image
+
+
+def curve_plot(curve: list[dict], title: str) -> np.ndarray:
+    """:func:`line_plot` (log y) of every numeric series of a training curve, rows
+    ``{"step": int, <name>: float, ...}`` (``curve.json`` of a model artifact); a row without a
+    number for a series is skipped for it."""
+    rows = [r for r in curve if isinstance(r, dict) and _is_number(r.get("step"))]
+    names = sorted({k for r in rows for k, v in r.items() if k != "step" and _is_number(v)})
+    series = {n: (np.array([r["step"] for r in rows if _is_number(r.get(n))], float),
+                  np.array([r[n] for r in rows if _is_number(r.get(n))], float)) for n in names}
+    return line_plot(series, title=title)
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
