@@ -103,6 +103,20 @@ def inspect_command(path: Path, as_json: bool) -> None:
     click.echo(json.dumps(info, indent=2) if as_json else format_description(info))
 
 
+# ------------------------------------------------------------------------------------- report
+@cli.command("report")
+@click.argument("subject", type=click.Path(path_type=Path))
+@click.option("--out", type=click.Path(path_type=Path, file_okay=False), default=None,
+              help="Report folder (default: SUBJECT/report); holds index.html and assets/.")
+@common_options
+def report_command(subject: Path, out: Path | None) -> None:
+    """One HTML page for a subject directory: every stage's inputs, config, timing, metrics next to
+    their baselines and the paper's figures, previews and curves. Reads artifacts only."""
+    from egorelight_cli.report import build_report
+
+    click.echo(str(build_report(subject, out)))
+
+
 # ---------------------------------------------------------------------------------- character
 @cli.group("character")
 def character_group() -> None:
@@ -498,6 +512,7 @@ def calibrate_command(ctx: click.Context, capture_path: Path, out: Path) -> None
 # ------------------------------------------------------------------------------- entry point
 def main(argv: list[str] | None = None) -> None:
     """Console-script entry: maps failures to one line and an exit code."""
+    console.set_verbosity(console.NORMAL)  # -q/-v of an earlier in-process call must not leak into this one
     try:
         cli.main(args=argv, prog_name="egorelight", standalone_mode=False)
         code = 0

@@ -150,13 +150,20 @@ def _apply_girth(vertices: np.ndarray, weights: np.ndarray, skeleton, bone_names
     return out
 
 
-def _jitter_joints(skeleton, rng: np.random.Generator, sigma: float):
-    """Offsets of the joints that carry a translation moved by ~``sigma`` (fingers: a quarter)."""
-    offsets = skeleton.offsets.copy()
-    moving = np.linalg.norm(offsets, axis=1) > 1e-6
-    moving[0] = False
+def _jitter_joints(skeleton, rest_theta: np.ndarray, rng: np.random.Generator, sigma: float):
+    """Every joint centre moved by its own ~``sigma`` (fingers: a quarter), independently of its
+    parent's move (no drift down the chains); joints at one place (a DoF chain) move together."""
+    G = _rest_joints(skeleton, rest_theta)
+    positions = G[:, :3, 3]
+    _, place = np.unique(np.round(positions, 6), axis=0, return_inverse=True)
     scale = np.array([0.25 if bone_segment(n) == "hand" else 1.0 for n in skeleton.joint_names])
-    offsets[moving] += sigma * scale[moving, None] * rng.normal(size=(int(moving.sum()), 3))
+    noise = sigma * rng.normal(size=(place.max() + 1, 3))[place.ravel()] * scale[:, None]
+    noise[0] = 0.0
+    offsets = skeleton.offsets.copy()
+    for j, parent in enumerate(skeleton.parents):
+        if parent >= 0:
+            # offsets live in the parent's frame: rotate the relative move into it
+            offsets[j] += G[parent, :3, :3].T @ (noise[j] - noise[parent])
     return replace(skeleton, offsets=offsets)
 
 
@@ -192,7 +199,7 @@ def make_subject_body(template: Character, params: SubjectParams, seed: int) -> 
     vertices[:, 1] += lift
     root_offsets = scaled.offsets.copy()
     root_offsets[0, 1] += lift
-    skeleton = _jitter_joints(replace(scaled, offsets=root_offsets), rng, params.joint_jitter_m)
+    skeleton = _jitter_joints(replace(scaled, offsets=root_offsets), template.rest_theta, rng, params.joint_jitter_m)
     body = Character(
         name=f"subject-{int(seed)}", skeleton=skeleton, rest_theta=template.rest_theta, vertices=vertices,
         faces=faces, face_uvs=uvs, skin_bone_names=template.skin_bone_names,
