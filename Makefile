@@ -191,12 +191,16 @@ $(SUBJECT)/renders/%/manifest.json: $(SUBJECT)/meshes/%/manifest.json $(SUBJECT)
 	$(EGO) $(EGOFLAGS) relight --capture $(SUBJECT)/capture --meshes $(SUBJECT)/meshes/$* --uvmaps $(SUBJECT)/uvmaps/$* \
 		--model $(SUBJECT)/models/relight --character $(SUBJECT)/character --seq $* --out $(SUBJECT)/renders/$*
 
+$(SUBJECT)/envmap/%/manifest.json: $(CAPTURE) $(CALIBRATION)
+	$(EGO) $(EGOFLAGS) envmap --capture $(SUBJECT)/capture --calibration $(SUBJECT)/calibration --seq $* \
+		--out $(SUBJECT)/envmap/$*
+
 # keep intermediate per-sequence artifacts (make would delete pattern-rule intermediates)
 .SECONDARY:
 
 subject: $(CAPTURE) $(CHARACTER) $(PREVIEWS)/character.png $(CALIBRATION) \
 	$(SUBJECT)/meshes/$(SEQ)/manifest.json $(ANIMATE_STUDENT) $(SUBJECT)/uvmaps/$(SEQ)/manifest.json \
-	$(SUBJECT)/renders/$(SEQ)/manifest.json
+	$(SUBJECT)/renders/$(SEQ)/manifest.json $(SUBJECT)/envmap/wild/manifest.json
 
 # one HTML page for the subject (reads the artifacts only); after every artifact `subject` makes,
 # and again when any finished artifact's manifest is newer

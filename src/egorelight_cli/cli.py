@@ -496,6 +496,22 @@ def relight_command(ctx: click.Context, capture: Path, meshes_path: Path, uvmaps
                                    out)
 
 
+# -------------------------------------------------------------------------------- envmap
+@cli.command("envmap")
+@click.option("--capture", required=True, type=click.Path(path_type=Path), help="Capture (front-camera scan).")
+@click.option("--calibration", required=True, type=click.Path(path_type=Path),
+              help="Calibration artifact (hand-eye and the sequence's head poses).")
+@click.option("--seq", "--sequence", "seq", default="wild", show_default=True, help="Sequence holding the scan.")
+@click.option("--out", required=True, type=click.Path(path_type=Path), help="envmap artifact directory.")
+@common_options
+@click.pass_context
+def envmap_command(ctx: click.Context, capture: Path, calibration: Path, seq: str, out: Path) -> None:
+    """Front-camera scan -> equirect panorama + coverage -> inpainted environment map -> light intensities."""
+    from egorelight_cli.stages.envmap_commands import EnvmapCommands
+
+    EnvmapCommands(_stage_run(ctx, "envmap")).predict(capture, calibration, seq, out)
+
+
 # ---------------------------------------------------------------------------------- calibrate
 @cli.command("calibrate")
 @click.option("--capture", "capture_path", required=True, type=click.Path(path_type=Path), help="Capture artifact.")
