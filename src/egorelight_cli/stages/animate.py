@@ -43,7 +43,7 @@ from egorelight_cli.geometry.embedded_graph import embedded_deformation, mesh_ed
 from egorelight_cli.geometry.normals import vertex_normals
 from egorelight_cli.geometry.skeleton import bone_transforms
 from egorelight_cli.geometry.uv_signals import UVLayout, canonical_signal, motion_signal, root_transforms
-from egorelight_cli.io.mesh_sequence import MeshSequence
+from egorelight_cli.structures.mesh_sequence import MeshSequence
 from egorelight_cli.nn.animation_net import AnimationNet
 from egorelight_cli.nn.mesh_losses import filtered_chamfer, graph_arap, offset_isometry, offset_smoothness
 from egorelight_cli.structures.character import Character

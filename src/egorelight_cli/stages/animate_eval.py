@@ -39,7 +39,8 @@ from egorelight_cli.geometry.pointcloud_ops import SurfaceDistance
 from egorelight_cli.geometry.raycast import RayCaster
 from egorelight_cli.io.calibration import posed_ego_camera
 from egorelight_cli.io.capture import Capture
-from egorelight_cli.io.mesh_sequence import SurfaceSequence, read_surface_npz
+from egorelight_cli.io.mesh_sequence import read_surface_npz
+from egorelight_cli.structures.mesh_sequence import SurfaceSequence
 
 VISIBILITY_OFFSET_M = 2e-3
 # outer_faces: rays leave a face's centroid this far off the face, along the normal and along
@@ -279,7 +280,7 @@ def groundtruth_pointcloud(capture_root: str | Path, sequence: str, noise_m: flo
     mesh; hits get Gaussian noise of ``noise_m`` along the ray; normals are the true face normals
     oriented towards the camera. Frames without a head pose are left empty.
     """
-    from egorelight_cli.io.pointcloud import PointCloudSequence
+    from egorelight_cli.structures.pointcloud import PointCloudSequence
     from egorelight_cli.synth.groundtruth import oracle_calibration
 
     capture = Capture(capture_root)

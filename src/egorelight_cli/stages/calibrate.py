@@ -37,7 +37,8 @@ from egorelight_cli.config import Config
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.geometry.cameras import invert_rigid
 from egorelight_cli.geometry.rigid import mean_rotation, rotation_angle_deg
-from egorelight_cli.io.calibration import Calibration, EgoCameraCalibration, HeadPoses, write_calibration
+from egorelight_cli.io.calibration import write_calibration
+from egorelight_cli.structures.calibration import Calibration, EgoCameraCalibration, HeadPoses
 from egorelight_cli.io.capture import Capture, SequenceInfo, open_capture
 from egorelight_cli.pipeline import StageRun
 from egorelight_cli.stages.calibrate_handeye import HandEyeResult, calibrate_hand_eye

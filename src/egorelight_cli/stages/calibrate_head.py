@@ -24,7 +24,7 @@ from egorelight_cli.errors import EgorelightError
 from egorelight_cli.geometry.cameras import Camera
 from egorelight_cli.geometry.markers import aruco_dictionary, detect_markers, refine_marker_edges
 from egorelight_cli.geometry.rigid import kabsch, rigid, rigid_from_vector
-from egorelight_cli.io.calibration import HeadPoses
+from egorelight_cli.structures.calibration import HeadPoses
 from egorelight_cli.io.capture import Capture, SequenceInfo
 from egorelight_cli.io.exr import read_exr
 from egorelight_cli.io.images import read_image, srgb_to_linear, tonemap

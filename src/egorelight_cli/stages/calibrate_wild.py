@@ -51,7 +51,7 @@ from egorelight_cli.geometry.rigid import (
     rotation_angle_deg,
     vector_from_rigid,
 )
-from egorelight_cli.io.calibration import HeadPoses
+from egorelight_cli.structures.calibration import HeadPoses
 from egorelight_cli.io.capture import SequenceInfo
 from egorelight_cli.io.tracker import read_tracker
 from egorelight_cli.stages.calibrate_handeye import normalised

@@ -42,7 +42,8 @@ from egorelight_cli.geometry.cameras import Camera, invert_rigid
 from egorelight_cli.geometry.depth import camera_ray_map, depth_edges, range_to_depth, render_depth, unproject_depth
 from egorelight_cli.geometry.pointcloud_ops import fixed_size_cloud, fuse_views
 from egorelight_cli.geometry.raycast import RayCaster
-from egorelight_cli.io.calibration import Calibration, posed_ego_camera
+from egorelight_cli.io.calibration import posed_ego_camera
+from egorelight_cli.structures.calibration import Calibration
 from egorelight_cli.io.capture import Capture, SequenceInfo
 from egorelight_cli.nn.depth_net import DepthNet
 

@@ -22,7 +22,8 @@ from egorelight_cli import console
 from egorelight_cli.artifacts import Artifact, ArtifactWriter, open_artifact
 from egorelight_cli.config import Config
 from egorelight_cli.errors import EgorelightError
-from egorelight_cli.io.calibration import Calibration, open_calibration
+from egorelight_cli.io.calibration import open_calibration
+from egorelight_cli.structures.calibration import Calibration
 from egorelight_cli.io.capture import Capture, frame_file, open_capture
 from egorelight_cli.pipeline import StageRun
 
@@ -189,7 +190,8 @@ def _predict_sequence(writer: ArtifactWriter, cfg: Config, capture: Capture, cal
     from egorelight_cli.stages import egodepth as ed
     from egorelight_cli.io.exr import write_exr
     from egorelight_cli.io.images import write_image
-    from egorelight_cli.io.pointcloud import PointCloudSequence, save_pointcloud
+    from egorelight_cli.io.pointcloud import save_pointcloud
+    from egorelight_cli.structures.pointcloud import PointCloudSequence
 
     settings = ed.PredictSettings.from_config(cfg)
     ray_maps = {r: ed.camera_ray_map(capture.ego_camera(r)) for r in roles}

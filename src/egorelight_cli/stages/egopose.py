@@ -44,9 +44,9 @@ from egorelight_cli.config import Config
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.geometry.cameras import project
 from egorelight_cli.geometry.rotations import rigid_inverse
-from egorelight_cli.io.calibration import Calibration, HeadPoses
+from egorelight_cli.structures.calibration import Calibration, HeadPoses
 from egorelight_cli.io.capture import Capture, SequenceInfo
-from egorelight_cli.io.keypoints import Keypoints
+from egorelight_cli.structures.keypoints import Keypoints
 from egorelight_cli.nn.egopose_net import (EgoPoseNet, RigGeometry, heading_frame, project_keypoints,
                                            range_log_init, transform, windows)
 from egorelight_cli.structures.keypoints import (BODY_KEYPOINTS, BODY_SLICE, FINGER_SEGMENTS, FINGERS, KEYPOINT_NAMES,

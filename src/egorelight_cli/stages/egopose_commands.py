@@ -29,7 +29,8 @@ import numpy as np
 from egorelight_cli.artifacts import Artifact, ArtifactWriter, open_artifact
 from egorelight_cli.config import Config
 from egorelight_cli.errors import EgorelightError
-from egorelight_cli.io.calibration import Calibration, open_calibration
+from egorelight_cli.io.calibration import open_calibration
+from egorelight_cli.structures.calibration import Calibration
 from egorelight_cli.io.capture import Capture, open_capture
 from egorelight_cli.io.keypoints import read_keypoints_npz, save_keypoints
 from egorelight_cli.pipeline import StageRun

@@ -36,7 +36,7 @@ from egorelight_cli.io.capture import Capture, SequenceInfo, read_reconstruction
 from egorelight_cli.geometry.raycast import RayCaster
 from egorelight_cli.io.exr import read_exr
 from egorelight_cli.io.images import read_image
-from egorelight_cli.io.mesh_sequence import MeshSequence
+from egorelight_cli.structures.mesh_sequence import MeshSequence
 from egorelight_cli.nn.geolift_net import HISTORY, GeoLiftNet
 from egorelight_cli.nn.training import train
 from egorelight_cli.nn.unet import sample_feature_map

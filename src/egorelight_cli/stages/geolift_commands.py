@@ -29,7 +29,8 @@ from egorelight_cli.artifacts import Artifact, ArtifactWriter, open_artifact
 from egorelight_cli.config import Config
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.io.capture import Capture, frame_file, open_capture
-from egorelight_cli.io.mesh_sequence import MeshSequence, load_meshes
+from egorelight_cli.io.mesh_sequence import load_meshes
+from egorelight_cli.structures.mesh_sequence import MeshSequence
 from egorelight_cli.nn.geolift_net import GeoLiftNet
 from egorelight_cli.pipeline import StageRun
 from egorelight_cli.render.raster import rasterize_uv

@@ -17,7 +17,7 @@ from egorelight_cli.config import Config
 from egorelight_cli.io.capture import Capture, SequenceInfo
 from egorelight_cli.io.exr import write_exr_layers
 from egorelight_cli.io.images import tonemap, write_image
-from egorelight_cli.io.mesh_sequence import MeshSequence
+from egorelight_cli.structures.mesh_sequence import MeshSequence
 from egorelight_cli.nn.geolift_net import GeoLiftNet
 from egorelight_cli.render.lighting import CaptureEnvmaps, light_intensities
 from egorelight_cli.render.lightstage import LightStage

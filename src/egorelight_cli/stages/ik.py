@@ -75,7 +75,7 @@ from egorelight_cli.geometry.ik_jacobian import dof_influence, root_chain_joints
 from egorelight_cli.geometry.rigid import project_to_rotation
 from egorelight_cli.geometry.rotations import axis_angle_rotation
 from egorelight_cli.geometry.skeleton import forward_kinematics
-from egorelight_cli.io.keypoints import Keypoints
+from egorelight_cli.structures.keypoints import Keypoints
 from egorelight_cli.stages.ik_eval import fit_metrics, fitted_keypoints, gt_metrics, jitter_m
 from egorelight_cli.stages.ik_model import (
     IK_MODEL_PAYLOAD, IK_MODEL_TYPE, DofGroups, HandPCA, IKModel, clamp_to_limits,

@@ -32,8 +32,10 @@ import torch
 from egorelight_cli.artifacts import Artifact, ArtifactWriter, MANIFEST_NAME
 from egorelight_cli.config import Config
 from egorelight_cli.errors import EgorelightError
-from egorelight_cli.io.keypoints import Keypoints, load_keypoints
-from egorelight_cli.io.motion import Motion, load_motion, save_motion
+from egorelight_cli.io.keypoints import load_keypoints
+from egorelight_cli.structures.keypoints import Keypoints
+from egorelight_cli.io.motion import load_motion, save_motion
+from egorelight_cli.structures.motion import Motion
 from egorelight_cli.pipeline import StageRun
 from egorelight_cli.stages.character_commands import character_sources
 from egorelight_cli.stages.ik import (IK_MODEL_TYPE, IKModel, IKResult, IKSettings, default_ik_model,

@@ -10,8 +10,8 @@ import torch
 
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.geometry.ik_jacobian import KeypointJacobian
-from egorelight_cli.io.keypoints import Keypoints
-from egorelight_cli.io.motion import Motion
+from egorelight_cli.structures.keypoints import Keypoints
+from egorelight_cli.structures.motion import Motion
 from egorelight_cli.stages.ik_model import classify_dofs
 from egorelight_cli.stages.ik_solvers import IKResult
 from egorelight_cli.structures.character import Character

@@ -16,7 +16,7 @@ from scipy.linalg.blas import dsbmv
 
 from egorelight_cli import console
 from egorelight_cli.geometry.ik_jacobian import KeypointJacobian, dof_influence
-from egorelight_cli.io.motion import Motion
+from egorelight_cli.structures.motion import Motion
 from egorelight_cli.runtime import blas_threads
 from egorelight_cli.stages.ik_robust import huber_factors
 from egorelight_cli.stages.ik_settings import IKSettings
