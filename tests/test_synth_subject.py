@@ -38,7 +38,7 @@ def test_body_is_finer_with_its_own_proportions_rig_and_weights(character, subje
     assert np.median(moved) > 0.01  # its own joints: centimetres away from the template's
     original = body.skin_weights[: character.num_vertices]  # subdivision keeps the template's vertices first
     assert np.abs(original - character.skin_weights).sum(1).mean() > 0.05  # L1 per vertex, max 2
-    other, _ = make_subject_body(character, SubjectParams(), seed=4)
+    other, _, _ = make_subject_body(character, SubjectParams(), seed=4)
     assert np.abs(other.vertices - body.vertices).max() > 0.01
 
 
@@ -87,3 +87,34 @@ def test_the_in_model_shortcut_is_gone(character, tiny_capture):
 def test_capture_writes_the_scan_as_an_input(tiny_capture):
     v, f = read_mesh(tiny_capture / "scan" / "scan.ply")
     assert len(f) > 1000 and v[:, 1].max() > 1.4
+
+
+def test_subdivision_vertices_take_their_light_visibility_from_their_parents(subject):
+    """Tracing only the previous level's vertices (about a third of the outer surface, plus the
+    boundary pairs where two parents disagree) gives nearly the same per-vertex visibility, and an
+    image as close to exact per-pixel shadows (measured: 0.12% vs 0.07% mean relative error)."""
+    from egorelight_cli.geometry.cameras import Camera, look_at
+    from egorelight_cli.geometry.normals import vertex_normals
+    from egorelight_cli.geometry.raycast import RayCaster
+    from egorelight_cli.render.lightstage import LightStage
+    from egorelight_cli.render.shading import Material, render_view, vertex_light_visibility
+    from egorelight_cli.synth.sensors import proxied_visibility
+
+    parents = subject.visibility_parents
+    traced = parents[:, 0] == np.arange(len(parents))
+    assert 0.2 < traced.mean() < 0.5
+    vertices = subject.rest_vertices()
+    stage = LightStage.dome(num_lights=60)
+    caster = RayCaster(vertices, subject.faces)
+    normals = vertex_normals(vertices, subject.faces)
+    full = vertex_light_visibility(vertices, subject.faces, stage, caster=caster, normals=normals)
+    proxy = proxied_visibility(vertices, normals, parents, stage, caster)
+    assert (full == proxy).mean() > 0.95  # they differ at shadow boundaries, where the renderer traces exactly
+    K = np.array([[300.0, 0, 79.5], [0, 300.0, 119.5], [0, 0, 1]])
+    camera = Camera("pinhole", K, np.zeros(5), 160, 240, look_at(np.array([0.4, 1.0, -2.5]), np.array([0, 0.9, 0])))
+    light = stage.flat(1.0)
+    images = [render_view(vertices, subject.faces, None, Material(albedo=0.5), camera, stage, light, caster=caster,
+                          vertex_visibility=v, normals=normals, exact_lights=0).radiance for v in (None, full, proxy)]
+    exact = images[0]
+    error_full, error_proxy = (np.abs(image - exact).mean() / exact.mean() for image in images[1:])
+    assert error_proxy < 0.01 and error_proxy < 2.5 * error_full

@@ -188,8 +188,8 @@ def _shadow_rays(points: np.ndarray, offset_normals: np.ndarray, light_positions
     return origins, dirs, distance
 
 
-def _trace_pairs(caster: RayCaster, points: np.ndarray, offset_normals: np.ndarray, light_positions: np.ndarray,
-                 point_index: np.ndarray, light_index: np.ndarray, eps: float) -> np.ndarray:
+def trace_pairs(caster: RayCaster, points: np.ndarray, offset_normals: np.ndarray, light_positions: np.ndarray,
+                point_index: np.ndarray, light_index: np.ndarray, eps: float = SHADOW_EPS) -> np.ndarray:
     """Visibility (P,) bool of (point, light) pairs, in chunks of shadow rays."""
     points = np.asarray(points, dtype=np.float32)
     offset_normals = np.asarray(offset_normals, dtype=np.float32)
@@ -224,7 +224,7 @@ def light_visibility(caster: RayCaster, points: np.ndarray, normals: np.ndarray,
     n, m = len(points), len(light_ids)
     point_index = np.repeat(np.arange(n), m)
     light_index = np.tile(np.arange(m), n)
-    visible = _trace_pairs(caster, points, normals, lightstage.positions[light_ids], point_index, light_index, eps)
+    visible = trace_pairs(caster, points, normals, lightstage.positions[light_ids], point_index, light_index, eps)
     return visible.reshape(n, m)
 
 
@@ -239,7 +239,7 @@ def facing_light_visibility(caster: RayCaster, points: np.ndarray, normals: np.n
     facing = normals @ lightstage.positions.T - np.sum(normals * points, axis=1, keepdims=True) > 0
     point_index, light_index = np.nonzero(facing)
     visible = np.zeros(facing.shape, dtype=bool)
-    visible[point_index, light_index] = _trace_pairs(caster, points, normals, lightstage.positions, point_index,
+    visible[point_index, light_index] = trace_pairs(caster, points, normals, lightstage.positions, point_index,
                                                      light_index, eps)
     return visible
 
@@ -544,7 +544,7 @@ def render_view(vertices: np.ndarray, faces: np.ndarray, face_uvs: np.ndarray | 
             need = lit & (~agree | exact[None, :])
         p, l = np.nonzero(need)
         if p.size:
-            vis[p, l] = _trace_pairs(caster, points[rows], offset_normals[rows], light_positions, p, l, shadow_eps)
+            vis[p, l] = trace_pairs(caster, points[rows], offset_normals[rows], light_positions, p, l, shadow_eps)
             rays += int(p.size)
         irradiance, diffuse, specular = _shade_chunk(dirs, inv_d2, cos, vis, shading_normals[rows], view_dirs[rows],
                                                      albedo[rows], ks[rows], shininess[rows], J)

@@ -146,7 +146,7 @@ class Oracle:
         if worn and arrays["head"] is None:
             raise EgorelightError(f"{seq} has no head poses: the headset cannot be drawn")
         body = TexturedMesh(vertices=arrays["vertices"][row], faces=arrays["faces"], face_uvs=arrays["face_uvs"],
-                            **self.textures)
+                            visibility_parents=self.subject.visibility_parents, **self.textures)
         layout = scene_layout(body, self.hmd if worn else None, None)
         parts = {BODY: arrays["vertices"][row]}
         if worn:

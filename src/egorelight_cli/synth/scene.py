@@ -27,7 +27,7 @@ def subject_mesh(subject: Subject, appearance: Appearance) -> TexturedMesh:
     """The subject's outer surface (rest pose) with its textures and detail normal map."""
     return TexturedMesh(vertices=subject.rest_vertices(), faces=subject.faces, face_uvs=subject.face_uvs,
                         albedo=appearance.albedo, specular=appearance.specular, roughness=appearance.roughness,
-                        normal_map=appearance.normal_map)
+                        normal_map=appearance.normal_map, visibility_parents=subject.visibility_parents)
 
 
 def joint_transforms(character: Character, theta: np.ndarray) -> np.ndarray:
@@ -67,6 +67,16 @@ class SceneLayout:
         off = self.atlas.face_offsets
         keep = [self.atlas.faces[off[i]:off[i + 1]] for i, p in enumerate(self.parts) if p in (BODY, HMD)]
         return np.concatenate(keep)
+
+    def visibility_parents(self) -> np.ndarray:
+        """(V,2) visibility parents of the concatenated vertices (see :class:`TexturedMesh`)."""
+        off = self.atlas.vertex_offsets
+        out = []
+        for i, mesh in enumerate(self.meshes):
+            own = np.arange(off[i], off[i + 1])
+            parents = mesh.visibility_parents
+            out.append(np.stack([own, own], 1) if parents is None else np.asarray(parents, np.int64) + off[i])
+        return np.concatenate(out)
 
     def subject_vertex_count(self) -> int:
         off = self.atlas.vertex_offsets

@@ -30,7 +30,8 @@ from egorelight_cli.render.raster import vertex_normals
 from egorelight_cli.render.shading import (
     RenderResult,
     render_view,
-    vertex_light_visibility,
+    facing_light_visibility,
+    trace_pairs,
 )
 from egorelight_cli.synth.scene import SceneLayout
 
@@ -73,6 +74,31 @@ class Timer:
         return {k: self.seconds[k] / max(self.counts[k], 1) for k in self.seconds}
 
 
+def proxied_visibility(vertices: np.ndarray, normals: np.ndarray, parents: np.ndarray, lightstage: LightStage,
+                       caster: RayCaster) -> np.ndarray:
+    """(V,L) per-vertex light visibility, traced (:func:`facing_light_visibility`) at the vertices
+    that are their own parents; a subdivision vertex takes its parents' value where they agree and
+    is traced itself where they do not (shadow boundaries).
+
+    Args:
+        vertices, normals: (V,3) posed vertices and unit vertex normals.
+        parents: (V,2) visibility parents (:meth:`SceneLayout.visibility_parents`); parents are traced.
+    """
+    own = parents[:, 0] == np.arange(len(parents))
+    traced = np.flatnonzero(own)
+    visibility = np.zeros((len(vertices), lightstage.num_lights), dtype=bool)
+    visibility[traced] = facing_light_visibility(caster, vertices[traced], normals[traced], lightstage)
+    proxied = np.flatnonzero(~own)
+    a, b = visibility[parents[proxied, 0]], visibility[parents[proxied, 1]]
+    visibility[proxied] = a & b
+    facing = normals[proxied] @ lightstage.positions.T - np.sum(normals[proxied] * vertices[proxied], 1)[:, None] > 0
+    rows, lights = np.nonzero((a != b) & facing)
+    if rows.size:
+        visibility[proxied[rows], lights] = trace_pairs(caster, vertices[proxied], normals[proxied],
+                                                        lightstage.positions, rows, lights)
+    return visibility
+
+
 @dataclass
 class FrameRenderer:
     """Renders the cameras of one posed frame (see the module docstring)."""
@@ -88,7 +114,8 @@ class FrameRenderer:
         normals = vertex_normals(vertices, faces)
         start = time.perf_counter()
         if np.any(intensities > 0):
-            visibility = vertex_light_visibility(vertices, faces, self.lightstage, caster=caster, normals=normals)
+            visibility = proxied_visibility(vertices, normals, self.layout.visibility_parents(), self.lightstage,
+                                            caster)
         else:
             visibility = np.zeros((len(vertices), self.lightstage.num_lights), dtype=bool)
         self.timer.add("visibility", time.perf_counter() - start)

@@ -173,16 +173,20 @@ def _subdivided_graph(graph: EmbeddedGraph, extend_labels) -> EmbeddedGraph:
                          vertex_node_weight=extend_labels(graph.vertex_node_weight), faces=graph.faces)
 
 
-def make_subject_body(template: Character, params: SubjectParams, seed: int) -> tuple[Character, dict]:
-    """The subject's body (see the module docstring) and a description of what the seed chose."""
+def make_subject_body(template: Character, params: SubjectParams, seed: int) -> tuple[Character, dict, np.ndarray]:
+    """The subject's body (see the module docstring), a description of what the seed chose, and
+    (V,2) *visibility parents*: the two vertices of the previous subdivision level a vertex sits
+    between (itself twice for a vertex of that level)."""
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x5B7]))
     vertices, faces, uvs = template.vertices, template.faces, template.face_uvs
     weights, seg, hands, graph = template.skin_weights, template.segmentation, template.hand_segmentation, template.graph
+    parents = np.repeat(np.arange(len(vertices))[:, None], 2, axis=1)
     for _ in range(int(params.subdivisions)):
         sub = loop_subdivide(vertices, faces, uvs)
         vertices, faces, uvs = sub.vertices, sub.faces, sub.face_uvs
         weights, seg, hands = sub.extend(weights), sub.extend_labels(seg), sub.extend_labels(hands)
         graph = _subdivided_graph(graph, sub.extend_labels)
+        parents = np.concatenate([np.repeat(np.arange(sub.num_original)[:, None], 2, axis=1), sub.edges])
     proportions = draw_proportions(params, rng)
     sk0 = template.skeleton
     G0 = _rest_joints(sk0, template.rest_theta)
@@ -218,7 +222,7 @@ def make_subject_body(template: Character, params: SubjectParams, seed: int) -> 
                           if k[0] in GIRTH_SEGMENTS},
         "joint_jitter_m": params.joint_jitter_m,
     }
-    return body, description
+    return body, description, parents
 
 
 def pose_lbs(body: Character, theta: np.ndarray, rest_points: np.ndarray | None = None,
@@ -253,7 +257,7 @@ class Subject:
         description: what the seed chose.
     """
 
-    def __init__(self, body: Character, clothing, description: dict):
+    def __init__(self, body: Character, clothing, description: dict, parents: np.ndarray | None = None):
         self.body, self.clothing, self.description = body, clothing, description
         open_faces = body.faces[~clothing.covered_faces]
         self.body_keep = np.unique(open_faces)
@@ -263,6 +267,29 @@ class Subject:
         self.faces = np.concatenate([remap[open_faces], clothing.faces + nb])
         self.face_uvs = np.concatenate([body.face_uvs[~clothing.covered_faces], clothing.face_uvs])
         self.garment_faces = np.r_[np.zeros(len(open_faces), bool), np.ones(len(clothing.faces), bool)]
+        self.visibility_parents = self._outer_parents(remap, parents)
+
+    def _outer_parents(self, remap: np.ndarray, parents: np.ndarray | None) -> np.ndarray:
+        """(V,2) outer-surface visibility parents: a vertex between two vertices of the previous
+        subdivision level (both on the outer surface, in the same garment or both skin) takes its
+        light visibility from them; every other vertex is traced (its own parent)."""
+        nb = len(self.body_keep)
+        own = np.repeat(np.arange(self.num_vertices)[:, None], 2, axis=1)
+        if parents is None:
+            return own
+        out = own.copy()
+        body_parents = remap[parents[self.body_keep]]  # (nb,2), -1 where a parent is under a garment
+        ok = np.all(body_parents >= 0, axis=1)
+        out[:nb][ok] = body_parents[ok]
+        clothing = self.clothing
+        for g in range(len(clothing.names)):
+            rows = np.flatnonzero(clothing.garment == g)
+            local = np.full(self.body.num_vertices, -1, np.int64)
+            local[clothing.body_vertex[rows]] = rows + nb
+            garment_parents = local[parents[clothing.body_vertex[rows]]]
+            ok = np.all(garment_parents >= 0, axis=1)
+            out[rows[ok] + nb] = garment_parents[ok]
+        return out
 
     @property
     def num_vertices(self) -> int:
@@ -292,7 +319,7 @@ def make_subject(template: Character, cfg, seed: int) -> Subject:
     """The subject of a capture from the ``subject`` and ``clothing`` config sections."""
     from egorelight_cli.synth.clothing import ClothingModel, ClothingParams
 
-    body, description = make_subject_body(template, SubjectParams(**cfg.subject.to_dict()), seed)
+    body, description, parents = make_subject_body(template, SubjectParams(**cfg.subject.to_dict()), seed)
     clothing = ClothingModel(body, ClothingParams(**cfg.clothing.to_dict()), seed=seed)
     description = {**description, "garments": list(clothing.names), "garment_vertices": int(clothing.num_vertices)}
-    return Subject(body, clothing, description)
+    return Subject(body, clothing, description, parents)

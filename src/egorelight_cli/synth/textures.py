@@ -30,6 +30,9 @@ class TexturedMesh:
         specular: (H,W,1) float32 specular albedo.
         roughness: (H,W,1) float32 roughness.
         normal_map: (H,W,3) float32 tangent-space normal map, or None (flat: (0,0,1)).
+        visibility_parents: None, or (V,2) int64: vertex ``v`` takes its per-vertex light
+            visibility from vertices ``visibility_parents[v]`` (both visible: visible) instead of
+            casting its own rays; ``(v, v)`` for the vertices that are traced.
     """
 
     vertices: np.ndarray
@@ -39,6 +42,7 @@ class TexturedMesh:
     specular: np.ndarray
     roughness: np.ndarray
     normal_map: np.ndarray | None = None
+    visibility_parents: np.ndarray | None = None
 
 
 @dataclass(frozen=True, eq=False)
