@@ -191,9 +191,20 @@ $(SUBJECT)/renders/%/manifest.json: $(SUBJECT)/meshes/%/manifest.json $(SUBJECT)
 	$(EGO) $(EGOFLAGS) relight --capture $(SUBJECT)/capture --meshes $(SUBJECT)/meshes/$* --uvmaps $(SUBJECT)/uvmaps/$* \
 		--model $(SUBJECT)/models/relight --character $(SUBJECT)/character --seq $* --out $(SUBJECT)/renders/$*
 
-$(SUBJECT)/envmap/%/manifest.json: $(CAPTURE) $(CALIBRATION)
-	$(EGO) $(EGOFLAGS) envmap --capture $(SUBJECT)/capture --calibration $(SUBJECT)/calibration --seq $* \
-		--out $(SUBJECT)/envmap/$*
+# ---------------------------------------------------------------- envmap (Sec. egocentric HDR environment map)
+# The front-camera panorama's colour model is fitted by inverse rendering of the relight avatar into
+# the down cameras (tracked meshes/<seq> + uvmaps/<seq>), with the down cameras' colour synchronisation
+# fitted on ENVMAP_SYNC_SEQ's flat studio frames (student meshes + their uvmaps).
+ENVMAP_SYNC_SEQ ?= ego_train
+
+$(SUBJECT)/envmap/%/manifest.json: $(CAPTURE) $(CALIBRATION) $(SUBJECT)/meshes/%/manifest.json \
+		$(SUBJECT)/uvmaps/%/manifest.json $(RELIGHT_MODEL) $(CHARACTER) \
+		$(SUBJECT)/meshes_student/$(ENVMAP_SYNC_SEQ)/manifest.json $(SUBJECT)/uvmaps_student/$(ENVMAP_SYNC_SEQ)/manifest.json
+	$(EGO) $(EGOFLAGS) envmap --set inverse.sync.sequence=$(ENVMAP_SYNC_SEQ) --capture $(SUBJECT)/capture \
+		--calibration $(SUBJECT)/calibration --seq $* --meshes $(SUBJECT)/meshes/$* --uvmaps $(SUBJECT)/uvmaps/$* \
+		--model $(SUBJECT)/models/relight --character $(SUBJECT)/character \
+		--sync-meshes $(SUBJECT)/meshes_student/$(ENVMAP_SYNC_SEQ) \
+		--sync-uvmaps $(SUBJECT)/uvmaps_student/$(ENVMAP_SYNC_SEQ) --out $(SUBJECT)/envmap/$*
 
 # keep intermediate per-sequence artifacts (make would delete pattern-rule intermediates)
 .SECONDARY:

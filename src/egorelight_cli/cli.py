@@ -502,14 +502,30 @@ def relight_command(ctx: click.Context, capture: Path, meshes_path: Path, uvmaps
 @click.option("--calibration", required=True, type=click.Path(path_type=Path),
               help="Calibration artifact (hand-eye and the sequence's head poses).")
 @click.option("--seq", "--sequence", "seq", default="wild", show_default=True, help="Sequence holding the scan.")
+@click.option("--meshes", "meshes_path", type=click.Path(path_type=Path), default=None,
+              help="Tracked meshes of the sequence (animate): with --uvmaps/--model/--sync-*, fit A, gamma by inverse "
+                   "rendering; without, the LDR-panorama row.")
+@click.option("--uvmaps", "uvmaps_path", type=click.Path(path_type=Path), default=None,
+              help="geolift uvmaps of those meshes.")
+@click.option("--model", "model_path", type=click.Path(path_type=Path), default=None,
+              help="relight model (train relight).")
+@click.option("--sync-meshes", "sync_meshes", type=click.Path(path_type=Path), default=None,
+              help="Meshes of the studio sequence inverse.sync.sequence (colour synchronisation of the down cameras).")
+@click.option("--sync-uvmaps", "sync_uvmaps", type=click.Path(path_type=Path), default=None,
+              help="geolift uvmaps of the --sync-meshes.")
+@click.option("--character", default="default", show_default=True, help="Character artifact, .npz, .character or 'default'.")
 @click.option("--out", required=True, type=click.Path(path_type=Path), help="envmap artifact directory.")
 @common_options
 @click.pass_context
-def envmap_command(ctx: click.Context, capture: Path, calibration: Path, seq: str, out: Path) -> None:
-    """Front-camera scan -> equirect panorama + coverage -> inpainted environment map -> light intensities."""
-    from egorelight_cli.stages.envmap_commands import EnvmapCommands
+def envmap_command(ctx: click.Context, capture: Path, calibration: Path, seq: str, meshes_path: Path | None,
+                   uvmaps_path: Path | None, model_path: Path | None, sync_meshes: Path | None,
+                   sync_uvmaps: Path | None, character: str, out: Path) -> None:
+    """Front-camera scan -> equirect panorama -> inpainted map -> colour model (fitted by inverse rendering of the
+    avatar into the down cameras when its inputs are given) -> light intensities."""
+    from egorelight_cli.stages.envmap_commands import EnvmapCommands, InverseInputs
 
-    EnvmapCommands(_stage_run(ctx, "envmap")).predict(capture, calibration, seq, out)
+    inverse = InverseInputs.from_options(meshes_path, uvmaps_path, model_path, sync_meshes, sync_uvmaps, character)
+    EnvmapCommands(_stage_run(ctx, "envmap")).predict(capture, calibration, seq, out, inverse)
 
 
 # ---------------------------------------------------------------------------------- calibrate

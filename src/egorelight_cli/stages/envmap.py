@@ -1,7 +1,7 @@
 """``envmap``: the wearer's surroundings as an HDR environment map (paper Sec. "Affordable
 Egocentric HDR Environment Map Capture" + supplement).
 
-What runs today is the paper's "no inverse rendering" row (the LDR panorama used directly):
+Steps 1-5 below give the paper's "no inverse rendering" row (the LDR panorama used directly):
 
 1. **Scan frames** (:func:`scan_frames`): ``panorama.frames`` frames sampled uniformly over the
    scan, the first ``panorama.scan_s`` seconds of the sequence, among frames with a calibrated
@@ -16,8 +16,9 @@ What runs today is the paper's "no inverse rendering" row (the LDR panorama used
 3. **Panorama** ``E_o`` and coverage (:func:`~egorelight_cli.render.panorama.accumulate_panorama`),
    **inpainting** to ``E_l`` (:func:`~egorelight_cli.render.panorama.inpaint_equirect`).
 4. **Colour model** ``E_h = A . phi(E_l ** gamma)`` (:mod:`egorelight_cli.nn.colour_model`):
-   here ``A = [I | 0]``, ``gamma = 1`` (the paper's fit of ``A, gamma`` by inverse rendering of the
-   relightable avatar into the down-facing views needs the relight model and is not built yet).
+   :func:`build_envmap` applies ``A = [I | 0]``, ``gamma = 1`` (the LDR-panorama row); with the
+   relight model, tracked meshes and uvmaps, the command fits ``A, gamma`` by inverse rendering
+   of the avatar into the down-facing views (:mod:`egorelight_cli.stages.envmap_inverse`).
 5. **Light intensities** ``S(E_h)`` on the capture's light stage
    (:meth:`~egorelight_cli.render.lightstage.LightStage.envmap_to_intensities`).
 

@@ -155,3 +155,41 @@ def envmap_metrics(estimate: np.ndarray, observed: np.ndarray, truth: np.ndarray
     out["log_l1_observed"] = log_l1(estimate, small, observed, log_eps)
     out["log_l1_unobserved"] = log_l1(estimate, small, ~observed, log_eps)
     return out
+
+
+def relit_psnr(capture_root, estimates: dict[str, np.ndarray], truth: np.ndarray, cameras: int = 2,
+               sequence: str = "test") -> dict:
+    """Relit-render PSNR (dB) of the TRUE subject (the oracle renderer: true surface, materials,
+    headset) under each estimate's light vector (L,3) against the same subject under the true
+    ``truth`` (L,3), at the first ``cameras`` held-out studio cameras of ``sequence``'s first
+    environment-lit frame. Both images share one exposure, the one that maps the 99th percentile
+    of the true render's subject pixels to 1, then the metric tone mapping
+    (:func:`~egorelight_cli.render.image_metrics.tonemap_for_metrics`); scored over the pixels
+    either image covers. Returns ``{"relit_psnr": {name: dB}, "relit_views": [...]}``."""
+    import torch
+
+    from egorelight_cli.render.image_metrics import psnr, tonemap_for_metrics
+    from egorelight_cli.synth.oracle import Oracle
+
+    oracle = Oracle(capture_root)
+    doc = json.loads((oracle.root / "sequences" / sequence / "sequence.json").read_text())
+    lit = [int(f) for f, e in zip(doc["frame_ids"], doc["lights"]) if e.get("pattern") == "envmap"]
+    rig = json.loads((oracle.root / "rig" / "studio_cameras.json").read_text())["cameras"]
+    studio = [c["name"] for c in rig if c.get("role", "studio") == "studio"]
+    held = list(doc.get("held_out_cameras", []))
+    names = (held + [c for c in studio if c not in held])[:cameras]
+    if not lit or not names:
+        return {"relit_psnr": None, "relit_views": []}
+    scores = {name: [] for name in estimates}
+    for camera in names:
+        reference = oracle.render(sequence, lit[0], camera, lighting=truth)
+        level = np.percentile(reference.radiance.max(axis=-1)[reference.mask], 99.0) if reference.mask.any() else 1.0
+        exposure = 1.0 / max(float(level), 1e-12)
+        expected = tonemap_for_metrics(torch.from_numpy(reference.radiance), exposure)
+        for name, intensities in estimates.items():
+            render = oracle.render(sequence, lit[0], camera, lighting=intensities)
+            mask = torch.from_numpy(reference.mask | render.mask)
+            scores[name].append(float(psnr(tonemap_for_metrics(torch.from_numpy(render.radiance), exposure), expected,
+                                           mask)))
+    return {"relit_psnr": {name: float(np.mean(v)) for name, v in scores.items()},
+            "relit_views": [f"{sequence}/{lit[0]}/{camera}" for camera in names]}

@@ -77,6 +77,7 @@ class RelightFrame:
         head: (N,) bool texels of the head (excluded from the scores).
         lambert: (N,3) the Lambert relighting of the flat-lit texture, ``a chi / (pi rho s_flat)``
             (``pi rho s_flat`` is the irradiance of the flat lighting the texture was lit with).
+        flat_irradiance: (N,1) that ``pi rho s_flat`` (floored at 1e-3), for :func:`relit_frame`.
     """
 
     maps: torch.Tensor
@@ -86,6 +87,7 @@ class RelightFrame:
     vertices: np.ndarray
     head: np.ndarray
     lambert: torch.Tensor
+    flat_irradiance: torch.Tensor | None = None
 
 
 def frame_inputs(raster: UVRaster, maps: dict[str, np.ndarray], vertices: np.ndarray, faces: np.ndarray,
@@ -105,7 +107,25 @@ def frame_inputs(raster: UVRaster, maps: dict[str, np.ndarray], vertices: np.nda
     lambert = texels[:, 0:3] * texels[:, 7:10] / flat_irradiance
     return RelightFrame(torch.from_numpy(np.moveaxis(stacked, -1, 0).astype(np.float32)),
                         torch.from_numpy(surface.points.astype(np.float32)), footprint.float(), intensities,
-                        vertices, head_texel, torch.from_numpy(lambert.astype(np.float32)))
+                        vertices, head_texel, torch.from_numpy(lambert.astype(np.float32)),
+                        torch.from_numpy(flat_irradiance.astype(np.float32)))
+
+
+def relit_frame(frame: RelightFrame, coverage: torch.Tensor, chi: torch.Tensor, intensities=None) -> RelightFrame:
+    """``frame`` under other light: its irradiance ``chi`` (N,3) per covered texel (e.g.
+    :func:`~egorelight_cli.render.uv_features.irradiance_map` of a differentiable light vector)
+    replaces the ``chi`` channels and the Lambert term; differentiable in ``chi`` (the inverse
+    rendering of ``envmap``). ``intensities`` (L,3) is recorded as the frame's lighting."""
+    if frame.flat_irradiance is None:
+        raise EgorelightError("this frame was not built by frame_inputs (no flat irradiance)")
+    chi = chi.to(frame.maps.dtype)
+    height, width = coverage.shape
+    texels = torch.nonzero(coverage.reshape(-1), as_tuple=True)
+    chi_map = frame.maps.new_zeros((height * width, 3)).index_put(texels, chi).T.reshape(3, height, width)
+    maps = torch.cat([frame.maps[:7], chi_map], dim=0)
+    albedo = frame.maps[0:3].permute(1, 2, 0)[coverage]
+    return RelightFrame(maps, frame.points, frame.footprint, frame.intensities if intensities is None else intensities,
+                        frame.vertices, frame.head, albedo * chi / frame.flat_irradiance, frame.flat_irradiance)
 
 
 def ray_lighting(frame: RelightFrame, low_raster: UVRaster, faces: np.ndarray, lightstage: LightStage) -> TexelLighting:

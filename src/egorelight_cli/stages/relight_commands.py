@@ -62,35 +62,55 @@ class RelightData:
         self._lighting: dict[int, TexelLighting] = {}
         self._rays: dict[tuple[int, str], tuple[torch.Tensor, torch.Tensor]] = {}
 
+    def has_maps(self, frame_id: int) -> bool:
+        return (self.uvmaps.root / map_path(frame_id)).is_file()
+
+    def read_maps(self, frame_id: int, layers: tuple[str, ...] = UVMAP_LAYERS) -> dict[str, np.ndarray]:
+        """The frame's uvmaps ``layers`` (H,W,C each), checked against the model's resolution."""
+        path = self.uvmaps.root / map_path(frame_id)
+        exr = read_exr(path)
+        if exr.shape != self.raster.resolution:
+            raise EgorelightError(f"uvmaps are {exr.shape[1]}x{exr.shape[0]}, the model works at "
+                                  f"{self.raster.resolution[1]}x{self.raster.resolution[0]}", self.uvmaps.root)
+        missing = [n for n in layers if not any(c.startswith(f"{n}.") for c in exr.channels)]
+        if missing:
+            raise EgorelightError(f"uvmaps frame lacks the {', '.join(missing)} layer(s) (run geolift with "
+                                  "--capture for the lighting features)", path)
+        return {name: exr.layer(name) for name in layers}
+
+    def vertices(self, frame_id: int) -> np.ndarray:
+        return self.meshes.vertices[self.meshes.index_of(frame_id)].astype(np.float64)
+
+    def known_intensities(self, frame_id: int) -> np.ndarray:
+        """(L,3) the frame's recorded light entry."""
+        return light_intensities(self.lightstage, self.sequence.light_entry(frame_id), self.envmaps)
+
+    def assemble(self, frame_id: int, maps: dict[str, np.ndarray], intensities: np.ndarray) -> rl.RelightFrame:
+        """:func:`~egorelight_cli.stages.relight.frame_inputs` of the frame's mesh and ``maps``."""
+        return rl.frame_inputs(self.raster, maps, self.vertices(frame_id), self.character.faces,
+                               self.character.face_uvs, intensities, self.head_vertices,
+                               float(self.uvmaps.manifest["metrics"].get("flat_scale", 1.0)))
+
     def frame(self, frame_id: int) -> rl.RelightFrame:
         if frame_id not in self._frames:
-            path = self.uvmaps.root / map_path(frame_id)
-            exr = read_exr(path)
-            if exr.shape != self.raster.resolution:
-                raise EgorelightError(f"uvmaps are {exr.shape[1]}x{exr.shape[0]}, the model works at "
-                                      f"{self.raster.resolution[1]}x{self.raster.resolution[0]}", self.uvmaps.root)
-            missing = [n for n in UVMAP_LAYERS if not any(c.startswith(f"{n}.") for c in exr.channels)]
-            if missing:
-                raise EgorelightError(f"uvmaps frame lacks the {', '.join(missing)} layer(s) (run geolift with "
-                                      "--capture for the lighting features)", path)
-            maps = {name: exr.layer(name) for name in UVMAP_LAYERS}
-            intensities = light_intensities(self.lightstage, self.sequence.light_entry(frame_id), self.envmaps)
-            vertices = self.meshes.vertices[self.meshes.index_of(frame_id)].astype(np.float64)
-            self._frames[frame_id] = rl.frame_inputs(self.raster, maps, vertices, self.character.faces,
-                                                     self.character.face_uvs, intensities, self.head_vertices,
-                                                     float(self.uvmaps.manifest["metrics"].get("flat_scale", 1.0)))
+            self._frames[frame_id] = self.assemble(frame_id, self.read_maps(frame_id),
+                                                   self.known_intensities(frame_id))
         return self._frames[frame_id]
+
+    def ray_lighting(self, frame_id: int) -> TexelLighting:
+        """The frame's view-independent ray lighting (:func:`~egorelight_cli.stages.relight.ray_lighting`),
+        computed once (shadow rays per frame)."""
+        if frame_id not in self._lighting:
+            self._lighting[frame_id] = rl.ray_lighting(self.frame(frame_id), self.low_raster, self.character.faces,
+                                                       self.lightstage)
+        return self._lighting[frame_id]
 
     def view_rays(self, frame_id: int, camera: str) -> tuple[torch.Tensor, torch.Tensor]:
         key = (frame_id, camera)
         if key not in self._rays:
-            frame = self.frame(frame_id)
-            if frame_id not in self._lighting:  # view-independent: shadow rays once per frame
-                self._lighting[frame_id] = rl.ray_lighting(frame, self.low_raster, self.character.faces,
-                                                           self.lightstage)
             centre = self.capture.studio_cameras[camera].centre_world
-            self._rays[key] = rl.camera_rays(self._lighting[frame_id], frame.intensities, centre, self.lightstage,
-                                             self.rays)
+            self._rays[key] = rl.camera_rays(self.ray_lighting(frame_id), self.frame(frame_id).intensities, centre,
+                                             self.lightstage, self.rays)
         return self._rays[key]
 
     def target(self, frame_id: int, camera: str) -> tuple[torch.Tensor, torch.Tensor]:
@@ -145,6 +165,27 @@ def evaluate(model: rl.RelightModel, data: RelightData, views: list[tuple[int, s
             if i in preview_at:
                 previews.append(np.concatenate([tonemapped[k] for k in ("target", "render", "lambert", "baked")], 1))
     return scores.metrics(), previews
+
+
+def load_relight_model(path: Path) -> tuple[rl.RelightModel, dict, Artifact]:
+    """(model in eval mode, its data settings ``{"uv_resolution", "attention_level", "rays"}``,
+    artifact) of a ``train relight`` model."""
+    from egorelight_cli.io.model import read_model
+
+    artifact = open_artifact(path, kind="model")
+    payload = read_model(artifact.root, stage=rl.MODEL_STAGE)
+    arch = payload.architecture
+    net = {"uv_resolution": payload.extra["uv_resolution"], "attention_level": arch["attention_level"],
+           "rays": arch["rays"]}
+    model = rl.RelightModel(int(arch["base_channels"]), int(arch["levels"]), int(arch["attention_level"]),
+                            int(arch["rays"]), int(arch["heads"]), bool(arch["attention"]))
+    try:
+        model.load_state_dict(payload.state_dict)
+    except RuntimeError as exc:
+        raise EgorelightError(f"relight model does not fit its architecture ({str(exc).splitlines()[0]})",
+                              path) from None
+    model.eval()
+    return model, net, artifact
 
 
 @dataclass(frozen=True)
@@ -231,22 +272,8 @@ class RelightCommands:
 
     def predict(self, capture_path: Path, meshes_path: Path, uvmaps_path: Path, model_path: Path,
                 character_spec: str, seq: str, all_cameras: bool, out: Path) -> Path:
-        from egorelight_cli.io.model import read_model
-
-        model_artifact = open_artifact(model_path, kind="model")
-        payload = read_model(model_artifact.root, stage=rl.MODEL_STAGE)
-        arch = payload.architecture
-        net = {"uv_resolution": payload.extra["uv_resolution"], "attention_level": arch["attention_level"],
-               "rays": arch["rays"]}
+        model, net, model_artifact = load_relight_model(model_path)
         data, frames, inputs = self._load(capture_path, meshes_path, uvmaps_path, character_spec, seq, net)
-        model = rl.RelightModel(int(arch["base_channels"]), int(arch["levels"]), int(arch["attention_level"]),
-                                int(arch["rays"]), int(arch["heads"]), bool(arch["attention"]))
-        try:
-            model.load_state_dict(payload.state_dict)
-        except RuntimeError as exc:
-            raise EgorelightError(f"relight model does not fit its architecture ({str(exc).splitlines()[0]})",
-                                  model_path) from None
-        model.eval()
         held_out = list(data.sequence.doc.get("held_out_cameras", []))
         cameras = training_cameras(data.capture, data.sequence) + held_out if all_cameras else held_out
         if not cameras:

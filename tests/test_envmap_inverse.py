@@ -1,0 +1,175 @@
+"""envmap's inverse rendering (issue 19 item 4): the colour model recovered on a synthetic case,
+optical flow helpers, and the stage with --meshes/--uvmaps/--model on the tiny capture."""
+
+from __future__ import annotations
+
+import json
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+
+from egorelight_cli.nn.colour_model import RootPolynomialColour
+from egorelight_cli.render import optical_flow as of
+from egorelight_cli.render.lighting import EnvmapPooling
+from egorelight_cli.render.lightstage import LightStage
+from egorelight_cli.stages.envmap_inverse import fit_colour_model, part_l1, range_regulariser
+
+
+def test_inverse_rendering_recovers_a_known_colour_model():
+    """A linear stand-in renderer (pixel = transfer @ S(E_h)) with images made under a known A, gamma:
+    Adam through S(E) and the colour model finds a map and light vector within a few per cent."""
+    rng = np.random.default_rng(0)
+    stage = LightStage.dome(num_lights=24)
+    H = 8
+    E_l = torch.from_numpy(rng.uniform(0.05, 1.0, (H, 2 * H, 3)))
+    pooling = EnvmapPooling(stage, H)
+    A = np.concatenate([np.diag([1.6, 1.2, 0.8]), np.zeros((3, 3))], axis=1)
+    A[0, 1], A[2, 3] = 0.1, 0.2
+    truth = RootPolynomialColour(A, 1.5)
+    views = []
+    for _ in range(3):
+        transfer = torch.from_numpy(rng.uniform(0, 1, (100, 24)) * (rng.uniform(size=(1, 24)) < 0.6))
+        with torch.no_grad():
+            target = (transfer @ pooling(truth(E_l))).reshape(10, 10, 3).float()
+        views.append(SimpleNamespace(transfer=transfer, target=target, masks=torch.ones(2, 10, 10, dtype=torch.bool)))
+    fit = fit_colour_model(E_l, pooling, views, lambda v, e: (v.transfer @ e).reshape(10, 10, 3).float(), steps=400,
+                           lr=3e-2, views_per_step=3, reg_weight=0.0, reg_max=10.0)
+    with torch.no_grad():
+        E_true, E_fit = truth(E_l), fit.colour(E_l)
+        identity = float((pooling(E_l) - pooling(E_true)).norm() / pooling(E_true).norm())
+        lights = float((pooling(E_fit) - pooling(E_true)).norm() / pooling(E_true).norm())
+        texels = float((E_fit - E_true).norm() / E_true.norm())
+    assert identity > 0.2  # the identity start is far off
+    assert lights < 0.06 and texels < 0.08, (lights, texels)
+    assert float(fit.colour.gamma.detach()) == pytest.approx(1.5, abs=0.15)
+    assert fit.curve[-1]["loss"] < 0.2 * fit.curve[0]["loss"]
+
+
+def test_part_l1_balances_parts_and_regulariser_bounds_the_range():
+    image, target = torch.zeros(4, 4, 3), torch.zeros(4, 4, 3)
+    target[0] = 1.0  # one row of 4 pixels wrong
+    big = torch.zeros(2, 4, 4, dtype=torch.bool)
+    big[0, :3], big[1, 3] = True, True  # part 0: 12 pixels (4 wrong), part 1: 4 pixels (none wrong)
+    assert float(part_l1(image, target, big)) == pytest.approx(0.5 * (4 / 12))
+    assert part_l1(image, target, torch.zeros(1, 4, 4, dtype=torch.bool)) is None
+    assert float(range_regulariser(torch.full((2, 4, 3), 0.5), 1.0)) < 1e-9
+    assert float(range_regulariser(torch.full((2, 4, 3), 3.0), 1.0)) == pytest.approx(2.0, rel=1e-6)
+    assert float(range_regulariser(torch.full((2, 4, 3), -0.5), 1.0)) == pytest.approx(0.5, rel=1e-6)
+
+
+def test_dis_flow_warps_a_shifted_image_back_and_flags_occlusions():
+    rng = np.random.default_rng(3)
+    import cv2
+
+    texture = cv2.GaussianBlur(rng.uniform(0, 255, (96, 96)).astype(np.float32), (0, 0), 2.0)
+    source = np.clip(texture, 0, 255).astype(np.uint8)
+    target = np.roll(source, 3, axis=1)  # the content moved 3 px right
+    forward = of.estimate_flow(source, target)
+    backward = of.estimate_flow(target, source)
+    inner = (slice(10, -10), slice(10, -10))
+    assert np.median(forward[inner][..., 0]) == pytest.approx(3.0, abs=0.3)
+    warped = of.warp(target.astype(np.float32), forward)
+    assert np.abs(warped[inner] - source[inner]).mean() < 0.2 * np.abs(target[inner].astype(float) - source[inner]).mean()
+    consistent = of.consistent_flow(forward, backward, 1.0)
+    assert consistent[inner].mean() > 0.9
+    assert of.flow_method("raft", "/nonexistent/raft.pth")[0] == "dis"  # no weights: DIS, with the reason
+    assert "not found" in of.flow_method("raft", None)[1]
+
+
+def _main(*args) -> int:
+    from egorelight_cli.cli import main
+
+    try:
+        main([str(a) for a in args])
+    except SystemExit as exc:
+        return int(exc.code or 0)
+    return 0
+
+
+@pytest.fixture(scope="module")
+def avatar(tiny_capture, skinned_meshes, tmp_path_factory):
+    """A tiny geolift model, uvmaps of wild / ego_train / relight_train and a (briefly) trained relight model."""
+    root = tmp_path_factory.mktemp("envmap_inverse")
+    assert _main("--preset", "tiny", "-q", "train", "geolift", "--capture", tiny_capture, "--meshes",
+                 skinned_meshes / "relight_train.npz", "--out", root / "geolift") == 0
+    for seq in ("relight_train", "wild", "ego_train"):
+        assert _main("--preset", "tiny", "-q", "geolift", "--meshes", skinned_meshes / f"{seq}.npz", "--model",
+                     root / "geolift", "--capture", tiny_capture, "--seq", seq, "--out", root / f"uvmaps_{seq}") == 0
+    assert _main("--preset", "tiny", "-q", "--set", "train.steps=4", "train", "relight", "--capture", tiny_capture,
+                 "--meshes", skinned_meshes / "relight_train.npz", "--uvmaps", root / "uvmaps_relight_train",
+                 "--out", root / "relight") == 0
+    return root
+
+
+def _inverse_args(tiny_capture, calibration, skinned_meshes, avatar):
+    return ["envmap", "--preset", "tiny", "--capture", tiny_capture, "--calibration", calibration,
+            "--meshes", skinned_meshes / "wild.npz", "--uvmaps", avatar / "uvmaps_wild", "--model", avatar / "relight",
+            "--sync-meshes", skinned_meshes / "ego_train.npz", "--sync-uvmaps", avatar / "uvmaps_ego_train"]
+
+
+def test_envmap_inverse_rendering_on_the_tiny_capture(tiny_capture, oracle_calibration_artifact, skinned_meshes,
+                                                      avatar, tmp_path, run):
+    out = tmp_path / "envmap"
+    result = run(*_inverse_args(tiny_capture, oracle_calibration_artifact, skinned_meshes, avatar), "--out", out, "-q")
+    assert result.returncode == 0, result.stderr
+    manifest = json.loads((out / "manifest.json").read_text())
+    m = manifest["metrics"]
+    assert m["row"] == "fitted" and set(m["rows"]) == {"ldr_panorama_only", "fitted", "no_flow", "no_part_masks"}
+    for row in m["rows"].values():
+        for key in ("light_relative_error", "light_cosine", "dominant_light_direction_error_deg", "log_l1_observed",
+                    "log_l1_unobserved", "relit_psnr"):
+            assert row[key] is not None and np.isfinite(row[key]), key
+    assert m["light_relative_error"] == m["rows"]["fitted"]["light_relative_error"]
+    # gradients reached A and gamma through the renderer: the image loss fell and the model moved
+    assert m["inverse_loss_last"] < m["inverse_loss_first"]
+    model = json.loads((out / "colour_model.json").read_text())
+    assert model["row"] == "fitted" and model["fitted"] is True
+    assert not np.allclose(model["A"], np.eye(3, 6)) and model["gamma"] != 1.0
+    assert np.allclose(model["rows"]["ldr_panorama_only"]["A"], np.eye(3, 6))
+    for role in ("down_left", "down_right"):
+        sync = model["colour_sync"][role]
+        assert np.asarray(sync["matrix"]).shape == (3, 3) and sync["pixels"] > 30
+    from egorelight_cli.render.envmaps import load_envmap
+
+    envmap = load_envmap(out / "envmap.exr")
+    expected = RootPolynomialColour.from_json(model).apply_numpy(_inpainted(out))
+    np.testing.assert_allclose(envmap, expected, rtol=1e-4, atol=1e-6)
+    curve = json.loads((out / "curve.json").read_text())
+    assert len(curve["fitted"]) == 10 and (out / "inverse_preview.png").is_file()
+    assert m["relit_views"] and m["flow"] == "dis"
+
+
+def _inpainted(out):
+    """E_l as the stage had it, re-derived from panorama.exr, coverage.png and the stage's inpainting."""
+    from egorelight_cli.io.exr import read_exr
+    from egorelight_cli.io.images import read_image
+    from egorelight_cli.render.panorama import inpaint_equirect
+
+    manifest = json.loads((out / "manifest.json").read_text())
+    inpaint = manifest["config"]["inpaint"]
+    radiance = read_exr(out / "panorama.exr").layer("", ("R", "G", "B"))
+    return inpaint_equirect(radiance, read_image(out / "coverage.png") > 0, inpaint["method"],
+                            float(inpaint["radius_px"]))
+
+
+@pytest.mark.parametrize("drop, extra, message", [
+    ("--model", (), "missing --model"),
+    (None, ("--set", "inverse.flow.method=farneback"), "optical flow method"),
+    (None, ("--set", "inverse.rows=[no_flow]"), "inverse.rows"),
+    (None, ("--set", "inverse.roles=[down_up]"), "down_up"),
+    (None, ("--set", "inverse.sync.sequence=wild"), "wild"),
+])
+def test_envmap_inverse_bad_inputs_are_one_line_errors(tiny_capture, oracle_calibration_artifact, skinned_meshes,
+                                                       avatar, tmp_path, run, drop, extra, message):
+    args = _inverse_args(tiny_capture, oracle_calibration_artifact, skinned_meshes, avatar)
+    if drop is not None:
+        i = args.index(drop)
+        del args[i:i + 2]
+    out = tmp_path / "envmap"
+    result = run(*args, *extra, "--out", out)
+    assert result.returncode == 2, result.stderr
+    assert message in result.stderr and "Traceback" not in result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1
+    assert not out.exists()
