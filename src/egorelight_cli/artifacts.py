@@ -271,6 +271,23 @@ def open_artifact(path: str | Path, kind: str | None = None, verify: bool = True
     return artifact
 
 
+def resolve_payload(path: str | Path, kind: str, payload: str, what: str):
+    """Where the ``payload`` npz of an artifact of ``kind`` (short name) lives.
+
+    ``path`` may be the artifact directory, a single ``.npz`` with its sidecar, or a lone
+    ``.npz`` without one (then the caller checks the npz's own ``__meta__`` kind).
+    Returns ``(npz path, Artifact | None)``.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise EgorelightError(f"{what} input not found", path)
+    manifest_path, _ = manifest_path_for(path)
+    if path.is_file() and path.suffix == ".npz" and not manifest_path.is_file():
+        return path, None
+    artifact = open_artifact(path, kind=kind)
+    return (artifact.path if artifact.single_file else artifact.output(payload)), artifact
+
+
 # ----------------------------------------------------------------------------------- writing
 TEMPORARY_TAGS = ("tmp", "old")  # work directory of a writer; previous artifact being replaced
 

@@ -19,8 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
+from egorelight_cli.artifacts import resolve_payload
 from egorelight_cli.errors import EgorelightError
-from egorelight_cli.io.npz import read_kind_npz, require_arrays, resolve_payload, write_npz
+from egorelight_cli.io.npz import read_kind_npz, require_arrays, write_npz
 from egorelight_cli.structures.keypoints import KEYPOINT_NAMES, KEYPOINTS_UNITS, Keypoints
 
 __all__ = ["KEYPOINTS_KIND", "KEYPOINTS_VERSION", "KEYPOINTS_PAYLOAD", "KEYPOINTS_UNITS", "Keypoints",

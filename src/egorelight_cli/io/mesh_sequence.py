@@ -28,8 +28,9 @@ from pathlib import Path
 
 import numpy as np
 
+from egorelight_cli.artifacts import resolve_payload
 from egorelight_cli.errors import EgorelightError
-from egorelight_cli.io.npz import read_kind_npz, read_npz, require_arrays, resolve_payload, write_npz
+from egorelight_cli.io.npz import read_kind_npz, read_npz, require_arrays, write_npz
 from egorelight_cli.structures.mesh_sequence import MeshSequence, SurfaceSequence
 
 MESHES_KIND = "egorelight/meshes"

@@ -102,25 +102,6 @@ def read_kind_npz(path: str | Path, kind: str, version: int, check_finite: bool 
     return arrays, meta
 
 
-def resolve_payload(path: str | Path, kind: str, payload: str, what: str):
-    """Where the ``payload`` npz of an artifact of ``kind`` (short name) lives.
-
-    ``path`` may be the artifact directory, a single ``.npz`` with its sidecar, or a lone
-    ``.npz`` without one (then the caller checks the npz's own ``__meta__`` kind).
-    Returns ``(npz path, Artifact | None)``.
-    """
-    from egorelight_cli.artifacts import manifest_path_for, open_artifact
-
-    path = Path(path)
-    if not path.exists():
-        raise EgorelightError(f"{what} input not found", path)
-    manifest_path, _ = manifest_path_for(path)
-    if path.is_file() and path.suffix == ".npz" and not manifest_path.is_file():
-        return path, None
-    artifact = open_artifact(path, kind=kind)
-    return (artifact.path if artifact.single_file else artifact.output(payload)), artifact
-
-
 def read_npz_meta(path: str | Path) -> dict:
     """Only the ``__meta__`` entry of an npz (cheap: does not load the other arrays)."""
     path = Path(path)

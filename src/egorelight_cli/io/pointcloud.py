@@ -15,8 +15,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from egorelight_cli.artifacts import resolve_payload
 from egorelight_cli.errors import EgorelightError
-from egorelight_cli.io.npz import read_kind_npz, require_arrays, resolve_payload, write_npz
+from egorelight_cli.io.npz import read_kind_npz, require_arrays, write_npz
 from egorelight_cli.structures.pointcloud import PointCloudSequence
 
 POINTCLOUD_KIND = "egorelight/pointcloud"

@@ -29,7 +29,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from egorelight_cli import console
-from egorelight_cli.artifacts import Artifact, ArtifactWriter, open_artifact
+from egorelight_cli.artifacts import Artifact, ArtifactWriter, open_artifact, resolve_payload
 from egorelight_cli.config import Config
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.io.capture import Capture, open_capture, read_reconstructions
@@ -37,7 +37,6 @@ from egorelight_cli.io.mesh_sequence import export_sequence, save_meshes
 from egorelight_cli.structures.mesh_sequence import MeshSequence
 from egorelight_cli.io.motion import MOTION_PAYLOAD, load_motion
 from egorelight_cli.structures.motion import Motion
-from egorelight_cli.io.npz import resolve_payload
 from egorelight_cli.io.pointcloud import POINTCLOUD_PAYLOAD
 from egorelight_cli.pipeline import StageRun
 from egorelight_cli.stages.character_commands import character_sources, load_character
