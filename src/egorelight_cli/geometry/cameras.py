@@ -35,6 +35,7 @@ import numpy as np
 import torch
 
 from egorelight_cli.errors import EgorelightError
+from egorelight_cli.geometry import rotations
 
 CAMERA_MODELS = ("pinhole", "fisheye")
 _DIST_SIZES = {"pinhole": 5, "fisheye": 4}
@@ -204,8 +205,7 @@ def transform_points(T, points):
     """
     if isinstance(points, torch.Tensor) or isinstance(T, torch.Tensor):
         points_t = torch.as_tensor(points)
-        T_t = torch.as_tensor(T, dtype=points_t.dtype, device=points_t.device)
-        return (T_t[..., :3, :3] @ points_t.unsqueeze(-1)).squeeze(-1) + T_t[..., :3, 3]
+        return rotations.transform_points(torch.as_tensor(T, dtype=points_t.dtype, device=points_t.device), points_t)
     T = np.asarray(T)
     points = np.asarray(points)
     return np.einsum("...ij,...j->...i", T[..., :3, :3], points) + T[..., :3, 3]

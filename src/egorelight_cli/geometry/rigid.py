@@ -54,14 +54,22 @@ def mean_rotation(Rs) -> np.ndarray:
     return project_to_rotation(np.sum(np.asarray(Rs, np.float64), axis=0))
 
 
+def kabsch_rotations(P: np.ndarray, Q: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """Weighted rotations R (T,3,3) with ``R P + t ~ Q``; P (K,3), Q (T,K,3), w (T,K)."""
+    wsum = w.sum(axis=1, keepdims=True)[..., None]
+    pc = (w[..., None] * P).sum(axis=1, keepdims=True) / wsum
+    qc = (w[..., None] * Q).sum(axis=1, keepdims=True) / wsum
+    H = np.einsum("tk,tki,tkj->tij", w, P - pc, Q - qc)
+    return project_to_rotation(np.swapaxes(H, 1, 2))
+
+
 def kabsch(source, target, weights=None) -> np.ndarray:
     """(4,4) rigid ``T`` minimising ``sum w |T source_i - target_i|^2`` for points (N,3), N >= 3."""
     P, Q = np.asarray(source, np.float64), np.asarray(target, np.float64)
     w = np.ones(len(P)) if weights is None else np.asarray(weights, np.float64)
     w = w / w.sum()
     mp, mq = w @ P, w @ Q
-    H = ((P - mp) * w[:, None]).T @ (Q - mq)
-    R = project_to_rotation(H.T)
+    R = kabsch_rotations(P, Q[None], w[None])[0]
     return rigid(R, mq - R @ mp)
 
 

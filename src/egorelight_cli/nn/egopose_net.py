@@ -39,7 +39,7 @@ import torch
 from torch import nn
 
 from egorelight_cli.geometry.cameras import project, unproject_to_rays
-from egorelight_cli.geometry.rotations import rigid_inverse
+from egorelight_cli.geometry.rotations import rigid_inverse, transform_points
 from egorelight_cli.nn.unet import UNet, group_norm
 
 WORLD_UP = (0.0, 1.0, 0.0)
@@ -70,7 +70,7 @@ class RigGeometry:
 
 def transform(T: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
     """Apply (...,4,4) transforms to (...,N,3) points (T broadcast over N)."""
-    return points @ T[..., :3, :3].transpose(-1, -2) + T[..., None, :3, 3]
+    return transform_points(T[..., None, :, :], points)
 
 
 def heading_frame(T_world_from_hmd: torch.Tensor) -> torch.Tensor:

@@ -43,6 +43,7 @@ from egorelight_cli import console
 from egorelight_cli.config import Config
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.geometry.cameras import project
+from egorelight_cli.geometry.mpjpe import mpjpe_cm
 from egorelight_cli.geometry.rotations import rigid_inverse
 from egorelight_cli.structures.calibration import Calibration, HeadPoses
 from egorelight_cli.io.capture import Capture, SequenceInfo
@@ -537,13 +538,6 @@ def mean_pose_keypoints(mean_pose_heading: np.ndarray, frames: EgoFrames) -> np.
 
 
 # ------------------------------------------------------------------------------------- metrics
-def mpjpe_cm(pred: np.ndarray, truth: np.ndarray, mask: np.ndarray | None = None) -> float:
-    """Mean per-joint position error in cm over finite (and ``mask``) entries; NaN when none."""
-    err = np.linalg.norm(np.asarray(pred, np.float64) - np.asarray(truth, np.float64), axis=-1)
-    ok = np.isfinite(err) if mask is None else np.isfinite(err) & mask
-    return float(err[ok].mean() * 100) if ok.any() else float("nan")
-
-
 def keypoint_metrics(pred: np.ndarray, frame_ids: np.ndarray, truth: Keypoints, rows_mask: np.ndarray,
                      prefix: str = "") -> dict[str, float]:
     """MPJPE (cm) of body, hands and all keypoints on frames ``rows_mask`` (T,) of ``pred``

@@ -72,7 +72,7 @@ import torch
 from egorelight_cli import console
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.geometry.ik_jacobian import dof_influence, root_chain_joints
-from egorelight_cli.geometry.rigid import project_to_rotation
+from egorelight_cli.geometry.rigid import kabsch_rotations
 from egorelight_cli.geometry.rotations import axis_angle_rotation
 from egorelight_cli.geometry.skeleton import forward_kinematics
 from egorelight_cli.structures.keypoints import Keypoints
@@ -97,15 +97,6 @@ __all__ = [
 
 
 # --------------------------------------------------------------------------------- root init
-def _kabsch(P: np.ndarray, Q: np.ndarray, w: np.ndarray) -> np.ndarray:
-    """Weighted rotations R (T,3,3) with ``R P + t ~ Q``; P (K,3), Q (T,K,3), w (T,K)."""
-    wsum = w.sum(axis=1, keepdims=True)[..., None]
-    pc = (w[..., None] * P).sum(axis=1, keepdims=True) / wsum
-    qc = (w[..., None] * Q).sum(axis=1, keepdims=True) / wsum
-    H = np.einsum("tk,tki,tkj->tij", w, P - pc, Q - qc)
-    return project_to_rotation(np.swapaxes(H, 1, 2))
-
-
 def _chain_rotation(theta_rot: np.ndarray, W: np.ndarray, axes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Rotation of the root chain end (N,3,3) and its derivatives (N,r,3,3) w.r.t. the root
     rotation DoFs; ``W`` (r,c) weights of those DoFs on the chain's revolute joints (in chain
@@ -171,7 +162,7 @@ def _initial_root(character: Character, groups: DofGroups, theta_init: np.ndarra
     valid = (w > 0).sum(axis=1) >= 3
     if not valid.any():
         return theta
-    R = _kabsch(P, targets[valid][:, torso], w[valid])
+    R = kabsch_rotations(P, targets[valid][:, torso], w[valid])
     q = _root_rotation_dofs(R, sk.dof_joint_weights[np.ix_(rot_dofs, rev)], sk.axes[rev])
     full = np.empty((T, len(rot_dofs)))
     idx = np.nonzero(valid)[0]

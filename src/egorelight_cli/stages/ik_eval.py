@@ -10,6 +10,7 @@ import torch
 
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.geometry.ik_jacobian import KeypointJacobian
+from egorelight_cli.geometry.mpjpe import mean_distance_cm
 from egorelight_cli.structures.keypoints import Keypoints
 from egorelight_cli.structures.motion import Motion
 from egorelight_cli.stages.ik_model import classify_dofs
@@ -29,9 +30,8 @@ def fitted_keypoints(character: Character, theta: np.ndarray, chunk: int = 512) 
 
 # ------------------------------------------------------------------------------------ metrics
 def _mpjpe_cm(distance_m: np.ndarray, part: slice) -> float | None:
-    values = distance_m[:, part]
-    values = values[np.isfinite(values)]
-    return float(100.0 * values.mean()) if values.size else None
+    value = mean_distance_cm(distance_m[:, part])
+    return None if np.isnan(value) else value
 
 
 def _part_errors(distance_m: np.ndarray, prefix: str) -> dict[str, float | None]:
