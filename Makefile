@@ -206,12 +206,25 @@ $(SUBJECT)/envmap/%/manifest.json: $(CAPTURE) $(CALIBRATION) $(SUBJECT)/meshes/%
 		--sync-meshes $(SUBJECT)/meshes_student/$(ENVMAP_SYNC_SEQ) \
 		--sync-uvmaps $(SUBJECT)/uvmaps_student/$(ENVMAP_SYNC_SEQ) --out $(SUBJECT)/envmap/$*
 
+# ---------------------------------------------------------------- composite (telepresence: teaser)
+# User 1 (meshes/uvmaps of SEQ, the relight model) relit by User 2's light (envmap/wild) and composited
+# into User 2's calibrated front-camera view; PLACE = forward_m,right_m,yaw_deg from User 2's first head pose.
+PLACE ?= 2.0,0.0,0.0
+COMPOSITE := $(SUBJECT)/composite/manifest.json
+
+$(COMPOSITE): $(SUBJECT)/meshes/$(SEQ)/manifest.json $(SUBJECT)/uvmaps/$(SEQ)/manifest.json $(RELIGHT_MODEL) \
+		$(SUBJECT)/envmap/wild/manifest.json $(CALIBRATION) $(CHARACTER) $(CAPTURE)
+	$(EGO) $(EGOFLAGS) composite --meshes $(SUBJECT)/meshes/$(SEQ) --uvmaps $(SUBJECT)/uvmaps/$(SEQ) \
+		--model $(SUBJECT)/models/relight --character $(SUBJECT)/character --avatar-seq $(SEQ) \
+		--capture $(SUBJECT)/capture --calibration $(SUBJECT)/calibration --envmap $(SUBJECT)/envmap/wild \
+		--seq wild --place $(PLACE) --out $(SUBJECT)/composite
+
 # keep intermediate per-sequence artifacts (make would delete pattern-rule intermediates)
 .SECONDARY:
 
 subject: $(CAPTURE) $(CHARACTER) $(PREVIEWS)/character.png $(CALIBRATION) \
 	$(SUBJECT)/meshes/$(SEQ)/manifest.json $(ANIMATE_STUDENT) $(SUBJECT)/uvmaps/$(SEQ)/manifest.json \
-	$(SUBJECT)/renders/$(SEQ)/manifest.json $(SUBJECT)/envmap/wild/manifest.json
+	$(SUBJECT)/renders/$(SEQ)/manifest.json $(SUBJECT)/envmap/wild/manifest.json $(COMPOSITE)
 
 # one HTML page for the subject (reads the artifacts only); after every artifact `subject` makes,
 # and again when any finished artifact's manifest is newer

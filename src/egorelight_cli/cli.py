@@ -528,6 +528,40 @@ def envmap_command(ctx: click.Context, capture: Path, calibration: Path, seq: st
     EnvmapCommands(_stage_run(ctx, "envmap")).predict(capture, calibration, seq, out, inverse)
 
 
+# ----------------------------------------------------------------------------- composite
+@cli.command("composite")
+@click.option("--meshes", "meshes_path", required=True, type=click.Path(path_type=Path),
+              help="User 1's tracked meshes (meshes/test).")
+@click.option("--uvmaps", "uvmaps_path", required=True, type=click.Path(path_type=Path), help="geolift uvmaps of those meshes.")
+@click.option("--model", "model_path", required=True, type=click.Path(path_type=Path), help="relight model (train relight).")
+@click.option("--character", default="default", show_default=True, help="Character artifact, .npz, .character or 'default'.")
+@click.option("--avatar-seq", "avatar_seq", default="test", show_default=True,
+              help="The capture's sequence the meshes track (User 1; scored against its truth on the simulator).")
+@click.option("--capture", required=True, type=click.Path(path_type=Path), help="Capture (User 2's front images).")
+@click.option("--calibration", required=True, type=click.Path(path_type=Path),
+              help="Calibration artifact (User 2's head poses and hand-eye).")
+@click.option("--envmap", "envmap_path", required=True, type=click.Path(path_type=Path),
+              help="envmap artifact of User 2's sequence (E_h and its colour model).")
+@click.option("--seq", "--sequence", "seq", default="wild", show_default=True, help="User 2's sequence.")
+@click.option("--camera", "camera_role", default=None, help="HMD camera whose view is composited (default front_left).")
+@click.option("--camera-json", "camera_json", default=None, type=click.Path(path_type=Path, dir_okay=False),
+              help="A virtual camera instead (name, model, K, dist, T_cam_from_world in User 2's frame, width, height).")
+@click.option("--place", default="2.0,0.0,0.0", show_default=True,
+              help="'forward_m,right_m,yaw_deg' from User 2's first head pose; yaw 0 faces User 2.")
+@click.option("--out", required=True, type=click.Path(path_type=Path), help="composite artifact directory.")
+@common_options
+@click.pass_context
+def composite_command(ctx: click.Context, meshes_path: Path, uvmaps_path: Path, model_path: Path, character: str,
+                      avatar_seq: str, capture: Path, calibration: Path, envmap_path: Path, seq: str,
+                      camera_role: str | None, camera_json: Path | None, place: str, out: Path) -> None:
+    """User 1's avatar relit by User 2's environment map and composited into User 2's front-camera view."""
+    from egorelight_cli.stages.composite_commands import AvatarInputs, CompositeCommands
+
+    avatar = AvatarInputs(meshes_path, uvmaps_path, model_path, character, avatar_seq)
+    CompositeCommands(_stage_run(ctx, "composite")).predict(capture, calibration, envmap_path, avatar, seq, camera_role,
+                                                            camera_json, place, out)
+
+
 # ---------------------------------------------------------------------------------- calibrate
 @cli.command("calibrate")
 @click.option("--capture", "capture_path", required=True, type=click.Path(path_type=Path), help="Capture artifact.")

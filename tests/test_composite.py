@@ -1,0 +1,213 @@
+"""``egorelight composite`` (issue 20 item 1): the inverse colour mapping, the placement, the stage on
+the tiny capture with its scores against the oracle, and one-line errors."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from egorelight_cli.geometry.equirect import yaw_rotation
+from egorelight_cli.nn.colour_inverse import invert_colour
+from egorelight_cli.nn.colour_model import RootPolynomialColour
+from egorelight_cli.stages import composite as cp
+from test_envmap_inverse import _main  # the CLI in-process, for module fixtures
+
+
+def _model() -> RootPolynomialColour:
+    A = np.concatenate([np.diag([1.6, 1.2, 0.8]), np.zeros((3, 3))], axis=1)
+    A[0, 1], A[2, 3], A[1, 5], A[0, 4] = 0.1, 0.2, -0.15, 0.05
+    return RootPolynomialColour(A, 1.5)
+
+
+def test_inverse_colour_mapping_round_trips_the_forward_model():
+    rng = np.random.default_rng(0)
+    model = _model()
+    E_l = rng.uniform(0.0, 3.0, (60, 50, 3))
+    E_l[0, 0] = 0.0  # black
+    E_l[0, 1] = [0.0, 0.5, 1.0]  # a zero channel
+    E_l[0, 2] = [0.05, 2.0, 0.02]  # saturated colour (projected Newton stalls on these)
+    E_h = model.apply_numpy(E_l).astype(np.float64)
+    back, residual = invert_colour(model, E_h)
+    assert float(residual.max()) < 1e-5  # every pixel solved, none stuck
+    # forward of the inverse reproduces E_h (the stage maps E_h -> E_l; the envmap maps back)
+    np.testing.assert_allclose(model.apply_numpy(back), E_h, rtol=1e-4, atol=1e-5)
+    # E_l itself: exact where no channel is near 0 (there the inverse is ill-conditioned)
+    clear = E_l.min(axis=-1) > 0.05
+    assert clear.mean() > 0.9
+    np.testing.assert_allclose(back[clear], E_l[clear], rtol=1e-4, atol=1e-5)
+    assert np.abs(back[0, 0]).max() < 1e-6 and np.abs(back[0, 1] - E_l[0, 1]).max() < 1e-2
+    # fewer steps are measurably worse: the iterations do the work
+    _, coarse = invert_colour(model, E_h, iterations=2)
+    assert float(coarse.max()) > 100 * float(residual.max())
+    # the identity model inverts to the input; (A, gamma) tuples work too
+    same, _ = invert_colour((np.eye(3, 6), 1.0), np.abs(E_h))
+    np.testing.assert_allclose(same, np.abs(E_h), rtol=1e-5, atol=1e-7)
+
+
+def test_avatar_colour_is_inverted_unpremultiplied_and_composited_in_linear_light():
+    model = _model()
+    straight = np.array([0.2, 0.4, 0.3])
+    E_h = model.apply_numpy(straight)
+    alpha = np.array([[0.5, 0.0]], np.float32)
+    premult = (E_h[None, None] * alpha[..., None]).astype(np.float32)
+    mapped, residual = cp.avatar_to_camera(premult, alpha, model)
+    np.testing.assert_allclose(mapped[0, 0], 0.5 * straight, rtol=1e-4)
+    assert np.all(mapped[0, 1] == 0) and residual < 1e-4
+    background = np.full((1, 2, 3), 128, np.uint8)
+    out = cp.composite_image(background, mapped, alpha)
+    from egorelight_cli.io.images import linear_to_srgb, srgb_to_linear
+
+    expected = linear_to_srgb(0.5 * straight + 0.5 * srgb_to_linear(np.full(3, 128 / 255)))
+    np.testing.assert_array_equal(out[0, 0], np.round(expected * 255).astype(np.uint8))
+    np.testing.assert_array_equal(out[0, 1], background[0, 1])
+
+
+@pytest.mark.parametrize("yaw", [0.0, 35.0, -120.0])
+def test_placement_puts_the_feet_on_the_floor_at_the_requested_spot(yaw):
+    rng = np.random.default_rng(1)
+    # an avatar facing +X in the studio (its right hip towards +Z), standing 3 cm above its floor
+    vertices = rng.uniform([-0.2, 0.03, -0.25], [0.2, 1.7, 0.25], (500, 3)) + [1.0, 0.0, -0.5]
+    left_hip, right_hip = np.array([1.0, 0.95, -0.6]), np.array([1.0, 0.95, -0.4])
+    # User 2 at (0.5, 1.62, 2.0) in a tracker frame, looking along azimuth 70 deg, camera tilted down
+    head = np.array([0.5, 1.62, 2.0])
+    R = yaw_rotation(-70.0) @ np.array([[1, 0, 0], [0, -1, 0], [0, 0, -1.0]])  # cam +z -> -Z, then turned
+    tilt = np.array([[1, 0, 0], [0, np.cos(0.2), -np.sin(0.2)], [0, np.sin(0.2), np.cos(0.2)]])
+    T_cam = np.eye(4)
+    T_cam[:3, :3], T_cam[:3, 3] = R @ tilt, head + [0.05, -0.03, 0.02]
+    forward = np.array([np.sin(np.radians(70.0)), 0.0, -np.cos(np.radians(70.0))])
+    right = np.cross(forward, [0.0, 1.0, 0.0])
+    assert T_cam[:3, 2] @ forward > 0.9  # the camera looks (roughly) along forward
+    placement = cp.place_avatar(vertices, left_hip, right_hip, T_cam, head, 2.0, -0.5, yaw, floor_y=0.12)
+    moved = vertices @ placement.T[:3, :3].T + placement.T[:3, 3]
+    assert moved[:, 1].min() == pytest.approx(0.12, abs=1e-9)  # feet on the floor
+    hips = (0.5 * (left_hip + right_hip)) @ placement.T[:3, :3].T + placement.T[:3, 3]
+    spot = head + 2.0 * forward - 0.5 * right
+    np.testing.assert_allclose(hips[[0, 2]], spot[[0, 2]], atol=1e-9)  # hips above the spot
+    np.testing.assert_allclose(placement.spot, [spot[0], 0.12, spot[2]], atol=1e-9)
+    facing = placement.T[:3, :3] @ np.array([1.0, 0.0, 0.0])
+    np.testing.assert_allclose(facing, yaw_rotation(yaw) @ -forward, atol=1e-9)  # yaw 0: faces User 2
+    np.testing.assert_allclose(placement.T[:3, :3] @ [0, 1.0, 0], [0, 1.0, 0], atol=1e-12)  # upright
+    # the camera expressed in the studio sees the studio avatar where User 2's camera sees the placed one
+    from egorelight_cli.geometry.cameras import Camera, invert_rigid
+
+    camera = Camera("pinhole", np.eye(3), np.zeros(5), 10, 10, invert_rigid(T_cam), "front_left")
+    studio = placement.camera_in_studio(camera)
+    p_studio = np.append(vertices[0], 1.0)
+    np.testing.assert_allclose(studio.T_cam_from_world @ p_studio,
+                               camera.T_cam_from_world @ np.append(moved[0], 1.0), atol=1e-9)
+
+
+def test_place_option_and_settings_are_checked():
+    from egorelight_cli.errors import EgorelightError
+
+    assert cp.parse_place("2, 0.5, -90") == (2.0, 0.5, -90.0)
+    for bad in ("2,0", "a,b,c", "1,2,3,4", "nan,0,0", "500,0,0"):
+        with pytest.raises(EgorelightError):
+            cp.parse_place(bad)
+
+
+@pytest.fixture(scope="module")
+def avatar(tiny_capture, skinned_meshes, oracle_calibration_artifact, tmp_path_factory):
+    """A tiny geolift model, uvmaps of test / wild / ego_train / relight_train, a (briefly) trained
+    relight model and the wild envmap fitted by inverse rendering."""
+    root = tmp_path_factory.mktemp("composite")
+    assert _main("--preset", "tiny", "-q", "train", "geolift", "--capture", tiny_capture, "--meshes",
+                 skinned_meshes / "relight_train.npz", "--out", root / "geolift") == 0
+    for seq in ("relight_train", "wild", "ego_train", "test"):
+        assert _main("--preset", "tiny", "-q", "geolift", "--meshes", skinned_meshes / f"{seq}.npz", "--model",
+                     root / "geolift", "--capture", tiny_capture, "--seq", seq, "--out", root / f"uvmaps_{seq}") == 0
+    assert _main("--preset", "tiny", "-q", "--set", "train.steps=4", "train", "relight", "--capture", tiny_capture,
+                 "--meshes", skinned_meshes / "relight_train.npz", "--uvmaps", root / "uvmaps_relight_train",
+                 "--out", root / "relight") == 0
+    assert _main("envmap", "--preset", "tiny", "-q", "--capture", tiny_capture, "--calibration",
+                 oracle_calibration_artifact, "--meshes", skinned_meshes / "wild.npz", "--uvmaps", root / "uvmaps_wild",
+                 "--model", root / "relight", "--sync-meshes", skinned_meshes / "ego_train.npz", "--sync-uvmaps",
+                 root / "uvmaps_ego_train", "--out", root / "envmap") == 0
+    return root
+
+
+def _args(tiny_capture, calibration, skinned_meshes, avatar):
+    return ["composite", "--preset", "tiny", "--meshes", skinned_meshes / "test.npz", "--uvmaps",
+            avatar / "uvmaps_test", "--model", avatar / "relight", "--capture", tiny_capture, "--calibration",
+            calibration, "--envmap", avatar / "envmap", "--seq", "wild"]
+
+
+def test_composite_on_the_tiny_capture(tiny_capture, oracle_calibration_artifact, skinned_meshes, avatar, tmp_path,
+                                       run):
+    out = tmp_path / "composite"
+    args = _args(tiny_capture, oracle_calibration_artifact, skinned_meshes, avatar)
+    result = run(*args, "--place", "2.0,0.0,0.0", "--out", out, "-q")
+    assert result.returncode == 0, result.stderr
+    from egorelight_cli.artifacts import open_artifact
+    from egorelight_cli.io.images import read_image
+
+    artifact = open_artifact(out, kind="composite")  # schema-valid, digests verified
+    manifest = artifact.manifest
+    m = manifest["metrics"]
+    frames = sorted((out / "frames").glob("*.png"))
+    assert len(frames) == m["frames"] == 2 and (out / "preview.png").is_file()
+    first = read_image(frames[0])
+    assert first.shape == (150, 200, 3) and first.dtype == np.uint8  # tiny: half the 400x300 front camera
+    assert m["frames_with_avatar"] == 2 and min(m["avatar_coverage"]) > 0.01  # the avatar is in view
+    assert "imageio-ffmpeg" in manifest["video"] or (out / "composite.mp4").is_file()
+    placement = json.loads((out / "placement.json").read_text())
+    assert placement["floor"] == "head" and np.asarray(placement["T_user2_from_studio"]).shape == (4, 4)
+    assert manifest["timing"]["per_frame_s"] > 0 and manifest["runtime"]["device"] == "cpu"
+    # scored against the oracle: the composite is closer to the truth than the flat studio light
+    rows = m["rows"]
+    assert set(rows) == {"composite", "flat_studio", "ldr_panorama_only"} and m["scored_frames"] == 2
+    for row in rows.values():
+        assert np.isfinite(row["psnr"]) and np.isfinite(row["ssim"])
+    assert m["psnr"] == rows["composite"]["psnr"] > 12.0, rows
+    assert m["mask_iou"] > 0.5
+    # floor at y = 0 of the (oracle, metric) frame: the same spot within the eye-height estimate
+    world = tmp_path / "world"
+    assert run(*args, "--set", "placement.floor=world", "--out", world, "-q").returncode == 0
+    moved = json.loads((world / "placement.json").read_text())
+    assert moved["floor_y_m"] == 0.0 and abs(placement["floor_y_m"]) < 0.15
+    # a virtual camera: the envmap's view (LDR, inverse colour model) as background
+    camera = {"model": "pinhole", "K": [[150, 0, 100], [0, 150, 75], [0, 0, 1]], "width": 200, "height": 150,
+              "T_cam_from_world": np.linalg.inv(np.asarray(placement["T_user2_from_studio"]) @ _look_at()).tolist()}
+    (tmp_path / "camera.json").write_text(json.dumps(camera))
+    virtual = tmp_path / "virtual"
+    result = run(*args, "--camera-json", tmp_path / "camera.json", "--out", virtual, "-q")
+    assert result.returncode == 0, result.stderr
+    vm = json.loads((virtual / "manifest.json").read_text())["metrics"]
+    assert vm["frames"] == 2 and vm["frames_with_avatar"] == 2
+
+
+def _look_at() -> np.ndarray:
+    """(4,4) ``T_studio_from_cam`` of a camera 3 m in front of the studio origin at 1 m height,
+    looking back along -Z (x right = +X, y down = -Y)."""
+    T = np.eye(4)
+    T[:3, :3] = np.diag([1.0, -1.0, -1.0])
+    T[:3, 3] = [0.0, 1.0, 3.0]
+    return T
+
+
+def test_bad_inputs_are_one_line_errors_with_nothing_written(tiny_capture, oracle_calibration_artifact,
+                                                             skinned_meshes, avatar, tmp_path, run):
+    args = _args(tiny_capture, oracle_calibration_artifact, skinned_meshes, avatar)
+    (tmp_path / "bad_camera.json").write_text('{"model": "pinhole"}')
+    cases = [
+        (["--place", "2,0"], "--place"),
+        (["--camera", "down_middle"], "down_middle"),
+        (["--camera-json", tmp_path / "bad_camera.json"], "bad_camera.json"),
+        (["--camera", "front_left", "--camera-json", tmp_path / "bad_camera.json"], "not both"),
+        (["--set", "placement.floor=ceiling"], "placement.floor"),
+        (["--set", "frames=0"], "frames"),
+    ]
+    for k, (extra, needle) in enumerate(cases):
+        out = tmp_path / f"out{k}"
+        result = run(*args, *extra, "--out", out, "-q")
+        assert result.returncode == 2, (extra, result.stderr)
+        lines = result.stderr.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith("egorelight: error:") and needle in lines[0], lines
+        assert not out.exists()
+    # an envmap path that is not an envmap artifact
+    out = tmp_path / "wrong_kind"
+    swapped = [a if a != avatar / "envmap" else avatar / "relight" for a in args]
+    result = run(*swapped, "--out", out, "-q")
+    assert result.returncode == 2 and result.stderr.startswith("egorelight: error:") and not out.exists()
