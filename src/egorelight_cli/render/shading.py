@@ -26,7 +26,8 @@ point offset by ``eps`` along its normal towards the light's side (pixels: the g
 normal; vertices: the vertex normal), with ``max_dist`` the distance to the light (Embree any-hit). :func:`render_view` either traces that exactly for every visible
 pixel and lit light (``vertex_visibility=None``; ~N_pixels x L rays), or reuses a per-vertex
 (V,L) visibility computed once per frame and shared by all cameras
-(:func:`vertex_light_visibility`). Per-vertex visibility interpolated over a face is only
+(:func:`vertex_light_visibility`; lights behind a vertex's tangent plane are not traced: they
+cannot light it). Per-vertex visibility interpolated over a face is only
 trusted where the face's three vertices agree; pixels on faces whose vertices disagree (shadow
 boundaries), and all pixels for the ``exact_lights`` strongest lights (OLAT, a sun), get exact
 per-pixel shadow rays. The remaining error is a shadow smaller than one triangle (e.g. a thin
@@ -228,6 +229,11 @@ def light_visibility(caster: RayCaster, points: np.ndarray, normals: np.ndarray,
     return visible.reshape(n, m)
 
 
+def lights_in_front(points: np.ndarray, normals: np.ndarray, lightstage: LightStage) -> np.ndarray:
+    """(N,L) bool: light in front of each point's tangent plane (``n . (x_l - p) > 0``)."""
+    return normals @ lightstage.positions.T - np.sum(normals * points, axis=1, keepdims=True) > 0
+
+
 def facing_light_visibility(caster: RayCaster, points: np.ndarray, normals: np.ndarray, lightstage: LightStage,
                             eps: float = SHADOW_EPS) -> np.ndarray:
     """(N,L) bool like :func:`light_visibility`, but lights behind a point's tangent plane (which
@@ -236,7 +242,7 @@ def facing_light_visibility(caster: RayCaster, points: np.ndarray, normals: np.n
     normals = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
     if normals.shape != points.shape:
         raise EgorelightError(f"points {points.shape} and normals {normals.shape} differ")
-    facing = normals @ lightstage.positions.T - np.sum(normals * points, axis=1, keepdims=True) > 0
+    facing = lights_in_front(points, normals, lightstage)
     point_index, light_index = np.nonzero(facing)
     visible = np.zeros(facing.shape, dtype=bool)
     visible[point_index, light_index] = trace_pairs(caster, points, normals, lightstage.positions, point_index,

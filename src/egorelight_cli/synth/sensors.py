@@ -31,6 +31,7 @@ from egorelight_cli.render.shading import (
     RenderResult,
     render_view,
     facing_light_visibility,
+    lights_in_front,
     trace_pairs,
 )
 from egorelight_cli.synth.scene import SceneLayout
@@ -91,8 +92,7 @@ def proxied_visibility(vertices: np.ndarray, normals: np.ndarray, parents: np.nd
     proxied = np.flatnonzero(~own)
     a, b = visibility[parents[proxied, 0]], visibility[parents[proxied, 1]]
     visibility[proxied] = a & b
-    facing = normals[proxied] @ lightstage.positions.T - np.sum(normals[proxied] * vertices[proxied], 1)[:, None] > 0
-    rows, lights = np.nonzero((a != b) & facing)
+    rows, lights = np.nonzero((a != b) & lights_in_front(vertices[proxied], normals[proxied], lightstage))
     if rows.size:
         visibility[proxied[rows], lights] = trace_pairs(caster, vertices[proxied], normals[proxied],
                                                         lightstage.positions, rows, lights)
