@@ -12,7 +12,7 @@ from egorelight_cli.geometry.equirect import yaw_rotation
 from egorelight_cli.nn.colour_inverse import invert_colour
 from egorelight_cli.nn.colour_model import RootPolynomialColour
 from egorelight_cli.stages import composite as cp
-from test_envmap_inverse import _main  # the CLI in-process, for module fixtures
+from tiny_models import cli_exit_code as _main, tiny_geolift_uvmaps  # the CLI in-process, shared setup
 
 
 def _model() -> RootPolynomialColour:
@@ -113,11 +113,7 @@ def avatar(tiny_capture, skinned_meshes, oracle_calibration_artifact, tmp_path_f
     """A tiny geolift model, uvmaps of test / wild / ego_train / relight_train, a (briefly) trained
     relight model and the wild envmap fitted by inverse rendering."""
     root = tmp_path_factory.mktemp("composite")
-    assert _main("--preset", "tiny", "-q", "train", "geolift", "--capture", tiny_capture, "--meshes",
-                 skinned_meshes / "relight_train.npz", "--out", root / "geolift") == 0
-    for seq in ("relight_train", "wild", "ego_train", "test"):
-        assert _main("--preset", "tiny", "-q", "geolift", "--meshes", skinned_meshes / f"{seq}.npz", "--model",
-                     root / "geolift", "--capture", tiny_capture, "--seq", seq, "--out", root / f"uvmaps_{seq}") == 0
+    tiny_geolift_uvmaps(root, tiny_capture, skinned_meshes, ("relight_train", "wild", "ego_train", "test"))
     assert _main("--preset", "tiny", "-q", "--set", "train.steps=4", "train", "relight", "--capture", tiny_capture,
                  "--meshes", skinned_meshes / "relight_train.npz", "--uvmaps", root / "uvmaps_relight_train",
                  "--out", root / "relight") == 0

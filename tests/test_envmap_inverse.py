@@ -15,6 +15,7 @@ from egorelight_cli.render import optical_flow as of
 from egorelight_cli.render.lighting import EnvmapPooling
 from egorelight_cli.render.lightstage import LightStage
 from egorelight_cli.stages.envmap_inverse import fit_colour_model, part_l1, range_regulariser
+from tiny_models import cli_exit_code as _main, tiny_geolift_uvmaps  # the CLI in-process, shared setup
 
 
 def test_inverse_rendering_recovers_a_known_colour_model():
@@ -78,25 +79,11 @@ def test_dis_flow_warps_a_shifted_image_back_and_flags_occlusions():
     assert "not found" in of.flow_method("raft", None)[1]
 
 
-def _main(*args) -> int:
-    from egorelight_cli.cli import main
-
-    try:
-        main([str(a) for a in args])
-    except SystemExit as exc:
-        return int(exc.code or 0)
-    return 0
-
-
 @pytest.fixture(scope="module")
 def avatar(tiny_capture, skinned_meshes, tmp_path_factory):
     """A tiny geolift model, uvmaps of wild / ego_train / relight_train and a (briefly) trained relight model."""
     root = tmp_path_factory.mktemp("envmap_inverse")
-    assert _main("--preset", "tiny", "-q", "train", "geolift", "--capture", tiny_capture, "--meshes",
-                 skinned_meshes / "relight_train.npz", "--out", root / "geolift") == 0
-    for seq in ("relight_train", "wild", "ego_train"):
-        assert _main("--preset", "tiny", "-q", "geolift", "--meshes", skinned_meshes / f"{seq}.npz", "--model",
-                     root / "geolift", "--capture", tiny_capture, "--seq", seq, "--out", root / f"uvmaps_{seq}") == 0
+    tiny_geolift_uvmaps(root, tiny_capture, skinned_meshes, ("relight_train", "wild", "ego_train"))
     assert _main("--preset", "tiny", "-q", "--set", "train.steps=4", "train", "relight", "--capture", tiny_capture,
                  "--meshes", skinned_meshes / "relight_train.npz", "--uvmaps", root / "uvmaps_relight_train",
                  "--out", root / "relight") == 0

@@ -9,27 +9,14 @@ import numpy as np
 import pytest
 
 from egorelight_cli.io.exr import read_exr
-
-
-def _main(*args) -> int:
-    from egorelight_cli.cli import main
-
-    try:
-        main([str(a) for a in args])
-    except SystemExit as exc:
-        return int(exc.code or 0)
-    return 0
+from tiny_models import cli_exit_code as _main, tiny_geolift_uvmaps  # the CLI in-process, shared setup
 
 
 @pytest.fixture(scope="module")
 def relight_inputs(tiny_capture, skinned_meshes, tmp_path_factory):
     """A tiny geolift model and uvmaps (with lighting features) of relight_train and test."""
     root = tmp_path_factory.mktemp("relight")
-    assert _main("--preset", "tiny", "-q", "train", "geolift", "--capture", tiny_capture, "--meshes",
-                 skinned_meshes / "relight_train.npz", "--out", root / "geolift") == 0
-    for seq in ("relight_train", "test"):
-        assert _main("--preset", "tiny", "-q", "geolift", "--meshes", skinned_meshes / f"{seq}.npz", "--model",
-                     root / "geolift", "--capture", tiny_capture, "--seq", seq, "--out", root / f"uvmaps_{seq}") == 0
+    tiny_geolift_uvmaps(root, tiny_capture, skinned_meshes, ("relight_train", "test"))
     return root
 
 
