@@ -159,9 +159,9 @@ class Material:
         """
         if self.normal_map is None or uv is None or face_uvs is None or len(normals) == 0:
             return normals
-        tangent, sign = face_uv_tangents(vertices, faces, face_uvs)
-        tilted = world_from_tangent_space(_sample_texture(self.normal_map, uv), normals, tangent[face_id],
-                                          sign[face_id])
+        # tangent frames of the faces hit only (not of the whole mesh, once per camera)
+        tangent, sign = face_uv_tangents(vertices, np.asarray(faces)[face_id], np.asarray(face_uvs)[face_id])
+        tilted = world_from_tangent_space(_sample_texture(self.normal_map, uv), normals, tangent, sign)
         return tilted.astype(np.float32)
 
 

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from egorelight_cli.render.raster import rasterize_uv, texels_to_surface
+from egorelight_cli.render.raster import UVRaster, rasterize_uv, texels_to_surface
 from egorelight_cli.structures.character import Character
 
 #: Material classes of texels.
@@ -116,10 +116,11 @@ def _dilate(values: np.ndarray, coverage: np.ndarray) -> np.ndarray:
     return values[rows, cols]
 
 
-def make_appearance(character: Character, resolution: int, seed: int) -> Appearance:
-    """Procedural albedo/specular/roughness maps of ``resolution`` texels for ``character``."""
+def make_appearance(character: Character, resolution: int, seed: int, uv: UVRaster | None = None) -> Appearance:
+    """Procedural albedo/specular/roughness maps of ``resolution`` texels for ``character`` (``uv``:
+    its UV raster at that resolution when the caller already has one)."""
     rng = np.random.default_rng(seed)
-    uv = rasterize_uv(character.face_uvs, resolution)
+    uv = rasterize_uv(character.face_uvs, resolution) if uv is None else uv
     coverage = uv.coverage
     points = texels_to_surface(uv, character.vertices, character.faces)[coverage].astype(np.float64)
     vmat = vertex_materials(character)

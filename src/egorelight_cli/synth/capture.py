@@ -196,8 +196,8 @@ def build_rig(cfg: Config, character: Character, user_envmaps: dict[str, np.ndar
     console.info("synth: building the subject, rig and environment maps")
     subject = make_subject(character, cfg, seed)
     body = subject.body
-    appearance = make_appearance(body, int(cfg.appearance.texture_resolution), seed)
     raster = rasterize_uv(body.face_uvs, int(cfg.appearance.texture_resolution))
+    appearance = make_appearance(body, int(cfg.appearance.texture_resolution), seed, uv=raster)
     appearance = replace(appearance, normal_map=detail_normal_map(raster, body.vertices, body.faces, body.face_uvs,
                                                                   appearance.material, seed))
     hmd = make_hmd(body, cfg.hmd, seed)

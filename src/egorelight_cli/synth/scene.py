@@ -8,6 +8,7 @@ a rendered ``face_id`` tells which part a pixel shows (:meth:`SceneLayout.part_o
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 import torch
@@ -68,6 +69,7 @@ class SceneLayout:
         keep = [self.atlas.faces[off[i]:off[i + 1]] for i, p in enumerate(self.parts) if p in (BODY, HMD)]
         return np.concatenate(keep)
 
+    @cached_property
     def visibility_parents(self) -> np.ndarray:
         """(V,2) visibility parents of the concatenated vertices (see :class:`TexturedMesh`)."""
         off = self.atlas.vertex_offsets

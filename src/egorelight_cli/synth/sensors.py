@@ -114,7 +114,7 @@ class FrameRenderer:
         normals = vertex_normals(vertices, faces)
         start = time.perf_counter()
         if np.any(intensities > 0):
-            visibility = proxied_visibility(vertices, normals, self.layout.visibility_parents(), self.lightstage,
+            visibility = proxied_visibility(vertices, normals, self.layout.visibility_parents, self.lightstage,
                                             caster)
         else:
             visibility = np.zeros((len(vertices), self.lightstage.num_lights), dtype=bool)

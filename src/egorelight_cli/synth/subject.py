@@ -32,6 +32,7 @@ import numpy as np
 import scipy.sparse as sp
 import torch
 
+from egorelight_cli.geometry.embedded_graph import mesh_adjacency
 from egorelight_cli.geometry.skeleton import bone_transforms, forward_kinematics
 from egorelight_cli.geometry.skinning import linear_blend_skinning
 from egorelight_cli.geometry.subdivision import loop_subdivide
@@ -93,12 +94,7 @@ def _rest_joints(skeleton, rest_theta: np.ndarray) -> np.ndarray:
 
 def _diffuse_weights(weights: np.ndarray, faces: np.ndarray, iterations: int) -> np.ndarray:
     """Skinning weights averaged with their mesh neighbours ``iterations`` times (rows sum to 1)."""
-    V = len(weights)
-    f = np.asarray(faces, dtype=np.int64)
-    rows = np.concatenate([f[:, 0], f[:, 1], f[:, 2], f[:, 1], f[:, 2], f[:, 0]])
-    cols = np.concatenate([f[:, 1], f[:, 2], f[:, 0], f[:, 0], f[:, 1], f[:, 2]])
-    A = sp.csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(V, V))
-    A.data[:] = 1.0
+    A = mesh_adjacency(faces, len(weights))
     degree = np.asarray(A.sum(axis=1)).ravel()
     M = sp.diags(1.0 / np.maximum(degree, 1)) @ A
     w = np.asarray(weights, dtype=np.float64)
