@@ -122,14 +122,16 @@ class TexelLighting:
 
 
 def texel_lighting(raster: UVRaster, vertices: np.ndarray, faces: np.ndarray, lightstage: LightStage,
-                   normals: np.ndarray | None = None, delta: float = SHADOW_EPS) -> TexelLighting:
+                   normals: np.ndarray | None = None, delta: float = SHADOW_EPS,
+                   surface: TexelSurface | None = None) -> TexelLighting:
     """Texel surface, visibility (shadow rays leave along the coarse normals) and transfer ``G``.
 
     ``normals`` (N,3), e.g. GeoLift's lifted ones, shade the texels; they are renormalised, and
     rows shorter than 0.5 (texels the map does not cover) and ``None`` use the coarse normals.
+    ``surface``: :func:`texel_surface` of these vertices when the caller already has it.
     """
     vertices = np.asarray(vertices, dtype=np.float64)
-    surface = texel_surface(raster, vertices, faces)
+    surface = texel_surface(raster, vertices, faces) if surface is None else surface
     shading = surface.normals
     if normals is not None:
         normals = np.asarray(normals, dtype=np.float64)

@@ -107,13 +107,21 @@ class Oracle:
                 return load_envmap(folder / f"{name}.exr")
         raise EgorelightError(f"the capture has no environment map {name!r}", self.root / "envmaps")
 
+    def _row(self, seq: str, frame_id: int) -> int:
+        """Row of ``frame_id`` in the sequence's ground truth (an error when absent)."""
+        rows = np.flatnonzero(self._sequence(seq)["frame_ids"] == int(frame_id))
+        if rows.size == 0:
+            raise EgorelightError(f"ground truth of {seq} has no frame {frame_id}", self.root / groundtruth.GT / seq)
+        return int(rows[0])
+
+    def _entry_intensities(self, entry: dict, stage: LightStage) -> np.ndarray:
+        """(L,3) of a ``sequence.json`` light entry on ``stage``."""
+        names = [entry["envmap"]] if entry.get("envmap") else []
+        return light_intensities(stage, entry, {n: self.envmap(n) for n in names})
+
     def intensities(self, seq: str, frame_id: int) -> np.ndarray:
         """(L,3) the lightstage condition the capture recorded for a studio frame."""
-        arrays = self._sequence(seq)
-        row = int(np.flatnonzero(arrays["frame_ids"] == int(frame_id))[0])
-        entry = arrays["lights"][row]
-        names = [entry["envmap"]] if entry.get("envmap") else []
-        return light_intensities(self.lightstage, entry, {n: self.envmap(n) for n in names})
+        return self._entry_intensities(self._sequence(seq)["lights"][self._row(seq, frame_id)], self.lightstage)
 
     def dome(self) -> LightStage:
         """The virtual dome of distant lights that lights the in-the-wild sequence."""
@@ -135,10 +143,7 @@ class Oracle:
             lights: the light rig (default the lightstage; :meth:`dome` for in-the-wild light).
         """
         arrays = self._sequence(seq)
-        rows = np.flatnonzero(arrays["frame_ids"] == int(frame_id))
-        if rows.size == 0:
-            raise EgorelightError(f"ground truth of {seq} has no frame {frame_id}", self.root / groundtruth.GT / seq)
-        row = int(rows[0])
+        row = self._row(seq, frame_id)
         stage = self.lightstage if lights is None else lights
         intensities = self._resolve_lighting(seq, frame_id, lighting, stage)
         cam = self.studio_camera(camera) if isinstance(camera, str) else camera
@@ -164,8 +169,7 @@ class Oracle:
                 raise EgorelightError("a recorded light entry is a lightstage condition: pass lighting for other lights")
             return self.intensities(seq, frame_id)
         if isinstance(lighting, dict):
-            names = [lighting["envmap"]] if lighting.get("envmap") else []
-            return light_intensities(stage, lighting, {n: self.envmap(n) for n in names})
+            return self._entry_intensities(lighting, stage)
         if isinstance(lighting, (int, np.integer)):
             return stage.olat(int(lighting), 1.0)
         if isinstance(lighting, tuple):

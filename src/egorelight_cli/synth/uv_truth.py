@@ -49,10 +49,10 @@ class UVTruth:
     def frame(self, vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(normals (N,3), flat-lit diffuse texture (N,3)) of one posed outer surface (V,3)."""
         faces = self.subject.faces
-        coarse = texel_surface(self.raster, vertices, faces).normals
-        normals = self.material.detail_normals(coarse.astype(np.float32), self.uv, self.face_id, vertices, faces,
-                                               self.subject.face_uvs).astype(np.float64)
-        lit = texel_lighting(self.raster, vertices, faces, self.lightstage, normals=normals)
+        surface = texel_surface(self.raster, vertices, faces)
+        normals = self.material.detail_normals(surface.normals.astype(np.float32), self.uv, self.face_id, vertices,
+                                               faces, self.subject.face_uvs).astype(np.float64)
+        lit = texel_lighting(self.raster, vertices, faces, self.lightstage, normals=normals, surface=surface)
         irradiance = irradiance_map(lit.transfer, self.lightstage, self.flat).numpy()
         return normals, self.albedo / np.pi * irradiance * self.exposure
 
