@@ -23,14 +23,22 @@ def raster(character):
     return rasterize_uv(character.face_uvs, 24)
 
 
-def test_coarse_normal_maps_and_the_temporal_stack(character, raster):
+def test_coarse_maps_tangent_frames_and_the_temporal_stack(character, raster):
     rng = np.random.default_rng(0)
     frames = np.stack([character.vertices + rng.normal(scale=0.002, size=character.vertices.shape) for _ in range(3)])
-    maps = gl.coarse_normal_maps(raster, frames, character.faces)
-    assert maps.shape == (3, 3, 24, 24)
+    coarse = gl.coarse_maps(raster, frames, character.faces, character.face_uvs)
+    maps = coarse.normals
+    assert maps.shape == (3, 3, 24, 24) and coarse.frames.shape == (3, 6, 24, 24)
     length = np.linalg.norm(maps, axis=1)
     np.testing.assert_allclose(length[:, raster.coverage], 1.0, atol=1e-5)
     assert not length[:, ~raster.coverage].any()
+    # (t, b, n) is orthonormal at every covered texel, t along the UV's u direction
+    t, b = coarse.frames[:, :3][:, :, raster.coverage], coarse.frames[:, 3:][:, :, raster.coverage]
+    n = maps[:, :, raster.coverage]
+    for x, y in ((t, t), (b, b)):
+        np.testing.assert_allclose((x * y).sum(axis=1), 1.0, atol=1e-4)
+    for x, y in ((t, b), (t, n), (b, n)):
+        np.testing.assert_allclose((x * y).sum(axis=1), 0.0, atol=1e-4)
     first = gl.stacked_input(maps, 0)
     np.testing.assert_array_equal(first, np.concatenate([maps[0]] * 3))  # clamped at the sequence start
     np.testing.assert_array_equal(gl.stacked_input(maps, 2), np.concatenate([maps[0], maps[1], maps[2]]))
@@ -41,12 +49,33 @@ def test_coarse_normal_maps_and_the_temporal_stack(character, raster):
 
 
 def test_untrained_network_returns_the_baselines(character, raster):
-    maps = gl.coarse_normal_maps(raster, character.vertices[None], character.faces)
-    model = GeoLiftNet(base_channels=8, levels=2, texture_init=(0.2, 0.3, 0.4))
-    normals, texture = gl.predict_maps(model, maps, 0)
+    coarse = gl.coarse_maps(raster, character.vertices[None], character.faces, character.face_uvs)
+    init = np.random.default_rng(1).uniform(0.1, 0.9, size=(3, 24, 24))
+    model = GeoLiftNet(base_channels=8, levels=2, uv_resolution=24, texture_init=init)
+    normals, texture = gl.predict_maps(model, coarse, 0)
     covered = raster.coverage
-    np.testing.assert_allclose(normals[:, covered], maps[0][:, covered], atol=1e-5)
-    np.testing.assert_allclose(texture[:, covered].mean(axis=1), [0.2, 0.3, 0.4], rtol=1e-4)
+    np.testing.assert_allclose(normals[:, covered], coarse.normals[0][:, covered], atol=1e-5)
+    np.testing.assert_allclose(texture, init, rtol=1e-4)  # the per-texel start, not its mean
+
+
+def test_learned_detail_is_a_tangent_space_normal_map_that_follows_the_surface(character, raster):
+    """A per-texel detail ``D = (a, 0, 0)`` tilts the normal towards the UV tangent by atan(a),
+    and under a rigid motion of the mesh the lifted normals move with it (the U-Net part is zero)."""
+    from scipy.spatial.transform import Rotation
+
+    model = GeoLiftNet(base_channels=8, levels=2, uv_resolution=24)
+    with torch.no_grad():
+        model.detail[:, 0] = 0.5
+    rotation = Rotation.from_euler("xyz", [0.4, -1.1, 0.7]).as_matrix()
+    rest = gl.coarse_maps(raster, character.vertices[None], character.faces, character.face_uvs)
+    moved = gl.coarse_maps(raster, (character.vertices @ rotation.T)[None], character.faces, character.face_uvs)
+    covered = raster.coverage
+    lifted_rest = gl.predict_maps(model, rest, 0)[0][:, covered]
+    lifted_moved = gl.predict_maps(model, moved, 0)[0][:, covered]
+    tilt = np.degrees(np.arccos(np.clip((lifted_rest * rest.normals[0][:, covered]).sum(0), -1, 1)))
+    np.testing.assert_allclose(tilt, np.degrees(np.arctan(0.5)), atol=1e-3)
+    assert ((lifted_rest * rest.frames[0][:3][:, covered]).sum(0) > 0).all()  # towards +t
+    np.testing.assert_allclose(rotation @ lifted_rest, lifted_moved, atol=2e-5)
 
 
 def test_detail_loss_asks_for_structure_not_values():

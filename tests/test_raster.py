@@ -163,6 +163,23 @@ def test_uv_raster_covers_every_face_with_area():
     assert np.isnan(surface_to_texels(np.array([-1]), np.zeros((1, 3)), face_uvs, resolution)).all()
 
 
+def test_uv_raster_marks_reassigned_texels_and_can_stay_faithful_to_uv():
+    vertices, faces, face_uvs, tiny = _mesh_with_tiny_uv_faces()
+    resolution = (64, 80)
+    conservative = rasterize_uv(face_uvs, resolution)
+    faithful = rasterize_uv(face_uvs, resolution, conservative=False)
+    assert not faithful.reassigned.any()
+    assert not np.isin(faithful.face_id, tiny).any()  # no texel centre lies in a tiny face
+    # every faithful texel samples its own centre
+    coords = surface_to_texels(faithful.face_id, faithful.barycentrics, face_uvs, resolution)
+    rows, cols = np.nonzero(faithful.coverage)
+    assert np.abs(coords[rows, cols] - np.stack([cols, rows], -1)).max() < 1e-4
+    # the conservative pass changes exactly the texels it marks, and only to give tiny faces one
+    moved = conservative.face_id != faithful.face_id
+    np.testing.assert_array_equal(moved, conservative.reassigned)
+    assert moved.any() and np.isin(conservative.face_id[moved], tiny).all()
+
+
 def test_uv_raster_convention_row_zero_is_v_one():
     face_uvs = np.array([[[0.0, 1.0], [0.5, 1.0], [0.0, 0.5]]])  # top-left corner triangle
     raster = rasterize_uv(face_uvs, 8)

@@ -169,11 +169,14 @@ class UVRaster:
         face_id: (H,W) int32 face sampled by each texel, -1 for empty texels.
         barycentrics: (H,W,3) float32 weights of that face's vertices (0 where empty).
         coverage: (H,W) bool, True where face_id >= 0.
+        reassigned: (H,W) bool, texels the conservative pass gave to a face that their centre is
+            not in (they sample a point up to a few texels away, possibly on another island).
     """
 
     face_id: np.ndarray
     barycentrics: np.ndarray
     coverage: np.ndarray
+    reassigned: np.ndarray | None = None
 
     @property
     def resolution(self) -> tuple[int, int]:
@@ -382,17 +385,21 @@ def _cover_small_faces(tri: np.ndarray, has_area: np.ndarray, face_id, barycentr
             _assign_texel(face, spot[0], spot[1], tri, face_id, barycentrics, counts)
 
 
-def rasterize_uv(face_uvs: np.ndarray, resolution) -> UVRaster:
+def rasterize_uv(face_uvs: np.ndarray, resolution, conservative: bool = True) -> UVRaster:
     """Rasterise UV triangles into a texel grid (row 0 = v = 1; texel centres sampled).
 
     Every texel whose centre lies in a face's UV triangle samples that face (later faces win
     where UV islands overlap). Then a conservative pass gives each face with non-zero UV area
     that received no texel (smaller than a texel, or overlapped) the nearest available texel,
-    sampled at the face point closest to that texel's centre.
+    sampled at the face point closest to that texel's centre. That pass moves texels away from
+    the surface point at their own UV (to a face up to a few texels away, possibly on another UV
+    island): ``conservative=False`` skips it, for maps that must be a faithful function of UV
+    (ground truth to compare maps of another mesh in the same layout against).
 
     Args:
         face_uvs: (F,3,2) face-corner UVs in [0, 1] (outside parts are clipped).
         resolution: int (square) or (H, W) in texels.
+        conservative: run the conservative pass (every face with UV area gets a texel).
 
     Returns:
         :class:`UVRaster` of shape (H, W).
@@ -409,11 +416,13 @@ def rasterize_uv(face_uvs: np.ndarray, resolution) -> UVRaster:
     face_id = np.full((height, width), -1, dtype=np.int64)
     barycentrics = np.zeros((height, width, 3), dtype=np.float64)
     _scan_faces(tri, area2, height, width, face_id, barycentrics)
-    _cover_small_faces(tri, area2 != 0, face_id, barycentrics)
+    centre_faces = face_id.copy()
+    if conservative:
+        _cover_small_faces(tri, area2 != 0, face_id, barycentrics)
     coverage = face_id >= 0
     barycentrics[~coverage] = 0.0
     return UVRaster(face_id=face_id.astype(np.int32), barycentrics=barycentrics.astype(np.float32),
-                    coverage=coverage)
+                    coverage=coverage, reassigned=face_id != centre_faces)
 
 
 def texels_to_surface(uv_raster: UVRaster, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:

@@ -5,6 +5,7 @@ and one posed mesh:
 
 * :func:`texel_surface` -- the surface point ``p'`` of every texel and the coarse normal ``n̄``
   (barycentric interpolation of the mesh's vertex normals), with the coverage mask;
+  :func:`texel_tangent_frames` -- the UV tangent frame around ``n̄`` (for tangent-space normals);
 * :func:`texel_visibility` -- Eq. ``optix``: a shadow ray from ``p' + delta n̄`` to every
   lightstage light, against the tracked mesh (Embree), ``delta = SHADOW_EPS``;
 * :func:`light_transfer` -- the per-light geometry term ``G_l = V_l max(0, n.w_l) Omega_l R_l^2 / d_l^2``
@@ -35,6 +36,7 @@ import torch
 
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.geometry.raycast import RayCaster
+from egorelight_cli.geometry.tangents import face_uv_tangents, tangent_frames
 from egorelight_cli.render.lightstage import LightStage
 from egorelight_cli.render.raster import UVRaster, texels_to_surface, vertex_normals
 from egorelight_cli.render.shading import SHADOW_EPS, facing_light_visibility
@@ -81,6 +83,16 @@ def texel_surface(uv_raster: UVRaster, vertices: np.ndarray, faces: np.ndarray) 
     if np.any(length < 1e-12):
         raise EgorelightError("the mesh has texels with a zero normal (degenerate faces)")
     return TexelSurface(coverage=coverage, points=points, normals=normals / length)
+
+
+def texel_tangent_frames(uv_raster: UVRaster, vertices: np.ndarray, faces: np.ndarray, face_uvs: np.ndarray,
+                         surface: TexelSurface) -> tuple[np.ndarray, np.ndarray]:
+    """(t, b) (N,3) float64 orthonormal UV tangent frames of the covered texels around ``surface.normals``
+    (:mod:`~egorelight_cli.geometry.tangents`: a tangent-space normal ``m`` means ``m_t t + m_b b + m_n n``)."""
+    face_id = uv_raster.face_id[uv_raster.coverage]
+    faces = np.asarray(faces, dtype=np.int64)[face_id]
+    tangent, sign = face_uv_tangents(np.asarray(vertices, np.float64), faces, np.asarray(face_uvs)[face_id])
+    return tangent_frames(surface.normals, tangent, sign)
 
 
 def texel_visibility(vertices: np.ndarray, faces: np.ndarray, surface: TexelSurface, lightstage: LightStage,

@@ -13,7 +13,10 @@ Losses per view (``../shared/notes/appearance.md`` Sec. 1.2, text/supplement pai
   (``normals/``, the paper's Sapiens). Without VGG weights the substitute is an L1 between the
   *differences of neighbouring pixels* of the rendered and the estimated normals: it asks for the
   estimate's local structure (folds, edges) without enforcing its absolute values, which is what
-  the paper uses the perceptual loss for. Weight ``train.weights.detail``.
+  the paper uses the perceptual loss for. Weight ``train.weights.detail``;
+* ``screen`` (ours, off by default): L1 between the rendered normals and the screen-space
+  estimates themselves. Measured on the cpu demo it does not help: the estimates and the
+  reconstruction are image-aligned, the tracked mesh slides along the surface by centimetres.
 
 Baselines (what GeoLift must beat, paper Tab. 4 "w/o GeoLiftingNet"): the coarse normals of the
 tracked mesh, and the mean texture (per texel, the mean of the flat-lit pixels that saw it over
@@ -41,9 +44,10 @@ from egorelight_cli.nn.geolift_net import HISTORY, GeoLiftNet
 from egorelight_cli.nn.training import train
 from egorelight_cli.nn.unet import sample_feature_map
 from egorelight_cli.render.raster import UVRaster, rasterize, uv_to_texel_coords
-from egorelight_cli.render.uv_features import texel_surface
+from egorelight_cli.render.uv_features import texel_surface, texel_tangent_frames
 
 MODEL_STAGE = "geolift"
+LOSSES = ("rgb", "normal", "screen", "detail")
 
 
 @dataclass(frozen=True)
@@ -60,7 +64,7 @@ class TrainSettings:
     @classmethod
     def from_config(cls, cfg: Config) -> "TrainSettings":
         t = cfg.train
-        weights = {k: float(t.weights[k]) for k in ("rgb", "normal", "detail")}
+        weights = {k: float(t.weights[k]) for k in LOSSES}
         settings = cls(int(t.steps), float(t.lr), int(t.views_per_step), weights, int(t.log_every), int(cfg.seed))
         if settings.steps < 1 or settings.views_per_step < 1 or settings.lr <= 0 or settings.log_every < 1:
             raise EgorelightError("train.steps, train.views_per_step, train.log_every must be >= 1 and train.lr > 0")
@@ -74,13 +78,29 @@ class TrainSettings:
 # --------------------------------------------------------------------------------------------
 
 
-def coarse_normal_maps(raster: UVRaster, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """(T,3,H,W) float32 world-space coarse normals of a mesh sequence (T,V,3); 0 off the layout."""
-    maps = np.zeros((len(vertices), 3) + raster.resolution, np.float32)
+@dataclass(frozen=True)
+class CoarseMaps:
+    """The tracked mesh sequence in UV space (0 off the layout).
+
+    Attributes:
+        normals: (T,3,H,W) float32 world-space coarse normals ``n̄``.
+        frames: (T,6,H,W) float32 the UV tangent frame ``(t, b)`` around them (world space).
+    """
+
+    normals: np.ndarray
+    frames: np.ndarray
+
+
+def coarse_maps(raster: UVRaster, vertices: np.ndarray, faces: np.ndarray, face_uvs: np.ndarray) -> CoarseMaps:
+    """:class:`CoarseMaps` of a mesh sequence (T,V,3) in the layout ``raster`` of ``face_uvs``."""
+    normals = np.zeros((len(vertices), 3) + raster.resolution, np.float32)
+    frames = np.zeros((len(vertices), 6) + raster.resolution, np.float32)
     for t, frame in enumerate(vertices):
         surface = texel_surface(raster, frame, faces)
-        maps[t] = np.moveaxis(surface.to_map(surface.normals.astype(np.float32)), -1, 0)
-    return maps
+        tangent, bitangent = texel_tangent_frames(raster, frame, faces, face_uvs, surface)
+        normals[t] = np.moveaxis(surface.to_map(surface.normals.astype(np.float32)), -1, 0)
+        frames[t] = np.moveaxis(surface.to_map(np.concatenate([tangent, bitangent], 1).astype(np.float32)), -1, 0)
+    return CoarseMaps(normals, frames)
 
 
 def stacked_input(normal_maps: np.ndarray, index: int, first: int = 0) -> np.ndarray:
@@ -214,7 +234,7 @@ def detail_loss(predicted: torch.Tensor, estimate: torch.Tensor, valid: torch.Te
 
 
 def view_losses(normals: torch.Tensor, texture: torch.Tensor, view: TrainView) -> dict[str, torch.Tensor]:
-    """The three losses of one view from the predicted maps (1,3,H,W) each."""
+    """The four losses of one view from the predicted maps (1,3,H,W) each."""
     uv = torch.from_numpy(view.uv)
     sampled = sample_feature_map(torch.cat([normals, texture], dim=1), uv)[0]
     rendered_normal = F.normalize(sampled[:, :3], dim=1, eps=1e-6)
@@ -223,6 +243,7 @@ def view_losses(normals: torch.Tensor, texture: torch.Tensor, view: TrainView) -
     return {
         "rgb": _masked_l1(rendered_colour, torch.from_numpy(view.colour), ones),
         "normal": _masked_l1(rendered_normal, torch.from_numpy(view.recon_normal), torch.from_numpy(view.recon_valid)),
+        "screen": _masked_l1(rendered_normal, torch.from_numpy(view.screen_normal), torch.from_numpy(view.screen_valid)),
         "detail": detail_loss(rendered_normal, torch.from_numpy(view.screen_normal),
                               torch.from_numpy(view.screen_valid),
                               [torch.from_numpy(view.right), torch.from_numpy(view.down)]),
@@ -235,20 +256,23 @@ def network_inputs(normal_maps: np.ndarray, starts: np.ndarray | None = None) ->
     return torch.from_numpy(np.stack([stacked_input(normal_maps, i, int(starts[i])) for i in range(len(normal_maps))]))
 
 
-def train_geolift(views: list[TrainView], inputs: torch.Tensor, settings: TrainSettings, net_cfg,
+def train_geolift(views: list[TrainView], coarse: CoarseMaps, starts: np.ndarray, settings: TrainSettings, net_cfg,
                   texture_init: np.ndarray, checkpoint=None) -> tuple[GeoLiftNet, list[dict]]:
-    """Fit GeoLiftingNet to the views (CPU) given every frame's :func:`network_inputs`; returns the
-    network and its training curve."""
+    """Fit GeoLiftingNet to the views (CPU) given every frame's coarse maps and sequence start
+    (``starts`` (T,), see :func:`network_inputs`); ``texture_init`` (3,H,W) starts the texture.
+    Returns the network and its training curve."""
     torch.manual_seed(settings.seed)
-    model = GeoLiftNet(int(net_cfg.base_channels), int(net_cfg.levels), texture_init)
+    model = GeoLiftNet(int(net_cfg.base_channels), int(net_cfg.levels), int(net_cfg.uv_resolution), texture_init)
     optimizer = torch.optim.Adam(model.parameters(), lr=settings.lr)
+    inputs = network_inputs(coarse.normals, starts)
+    frames_all = torch.from_numpy(coarse.frames)
 
     def step(k: int) -> dict[str, torch.Tensor]:
         rng = np.random.default_rng([settings.seed, k])
         batch = [views[i] for i in rng.choice(len(views), size=min(settings.views_per_step, len(views)),
                                                replace=False)]
         frames = sorted({v.index for v in batch})
-        normals, texture = model(inputs[frames])
+        normals, texture = model(inputs[frames], frames_all[frames])
         totals = {name: torch.zeros(()) for name in settings.weights}
         for view in batch:
             b = frames.index(view.index)
@@ -263,27 +287,28 @@ def train_geolift(views: list[TrainView], inputs: torch.Tensor, settings: TrainS
 
 
 @torch.no_grad()
-def predict_maps(model: GeoLiftNet, normal_maps: np.ndarray, index: int, first: int = 0) -> tuple[np.ndarray, np.ndarray]:
+def predict_maps(model: GeoLiftNet, coarse: CoarseMaps, index: int, first: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """(normals (3,H,W), texture (3,H,W)) float32 for frame ``index`` (sequence starting at ``first``)."""
-    normals, texture = model(torch.from_numpy(stacked_input(normal_maps, index, first))[None])
+    normals, texture = model(torch.from_numpy(stacked_input(coarse.normals, index, first))[None],
+                             torch.from_numpy(coarse.frames[index])[None])
     return normals[0].numpy(), texture[0].numpy()
 
 
-def fit_report(model: GeoLiftNet, views: list[TrainView], normal_maps: np.ndarray, texture: np.ndarray) -> dict:
+def fit_report(model: GeoLiftNet, views: list[TrainView], coarse: CoarseMaps, texture: np.ndarray) -> dict:
     """Training-view errors of the network next to its baselines (coarse normals, mean texture)."""
     rows = {"rgb_l1": [], "rgb_l1_mean_texture": [], "normal_deg": [], "normal_deg_coarse": []}
     baseline_texture = torch.from_numpy(texture)[None]
     for view in views:
         normals, predicted = (torch.from_numpy(m)[None]
-                              for m in predict_maps(model, normal_maps, view.index, view.first))
-        coarse = torch.from_numpy(normal_maps[view.index])[None]
+                              for m in predict_maps(model, coarse, view.index, view.first))
+        coarse_normals = torch.from_numpy(coarse.normals[view.index])[None]
         uv = torch.from_numpy(view.uv)
         colour = torch.from_numpy(view.colour)
         rows["rgb_l1"].append(float((sample_feature_map(predicted, uv)[0] - colour).abs().mean()))
         rows["rgb_l1_mean_texture"].append(float((sample_feature_map(baseline_texture, uv)[0] - colour).abs().mean()))
         if view.recon_valid.any():
             truth = view.recon_normal[view.recon_valid]
-            for key, maps in (("normal_deg", normals), ("normal_deg_coarse", coarse)):
+            for key, maps in (("normal_deg", normals), ("normal_deg_coarse", coarse_normals)):
                 sampled = F.normalize(sample_feature_map(maps, uv)[0], dim=1).numpy()[view.recon_valid]
                 rows[key].append(float(angle_deg(sampled, truth).mean()))
     return {f"train_{k}": float(np.mean(v)) if v else None for k, v in rows.items()}

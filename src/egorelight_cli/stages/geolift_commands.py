@@ -70,7 +70,8 @@ def load_geolift_model(path: Path) -> tuple[GeoLiftNet, dict, Artifact]:
         raise EgorelightError("a geolift model is a directory artifact", path)
     payload = read_model(artifact.root, stage=gl.MODEL_STAGE)
     try:
-        model = GeoLiftNet(int(payload.architecture["base_channels"]), int(payload.architecture["levels"]))
+        model = GeoLiftNet(int(payload.architecture["base_channels"]), int(payload.architecture["levels"]),
+                           int(payload.architecture["uv_resolution"]))
         model.load_state_dict(payload.state_dict)
     except (KeyError, RuntimeError) as exc:
         raise EgorelightError(f"geolift model does not match the network ({type(exc).__name__}: "
@@ -125,24 +126,23 @@ class GeoliftCommands:
             raster = rasterize_uv(character.face_uvs, int(cfg.net.uv_resolution))
             maps, starts, train_views, val_views, offset = [], [], [], [], 0
             for sequence, meshes, train_frames, val_frames, cameras in parts:
-                maps.append(gl.coarse_normal_maps(raster, meshes.vertices, character.faces))
+                maps.append(gl.coarse_maps(raster, meshes.vertices, character.faces, character.face_uvs))
                 starts.append(np.full(meshes.num_frames, offset, np.int64))
                 for frames, views in ((train_frames, train_views), (val_frames, val_views)):
                     views += gl.build_views(capture, sequence, meshes, character.faces, character.face_uvs, frames,
                                             cameras, offset)
                 offset += meshes.num_frames
-            normal_maps = np.concatenate(maps)
-            network_inputs = gl.network_inputs(normal_maps, np.concatenate(starts))
+            coarse = gl.CoarseMaps(np.concatenate([m.normals for m in maps]), np.concatenate([m.frames for m in maps]))
             texture = gl.mean_texture(train_views, raster.resolution)
             writer.timing["views_s"] = round(time.perf_counter() - started, 3)
             console.info(f"train geolift: {len(train_views)} views of {', '.join(sequences)}, "
                          f"{len(val_views)} held-out views")
             started = time.perf_counter()
-            model, curve = gl.train_geolift(train_views, network_inputs, gl.TrainSettings.from_config(cfg), cfg.net,
-                                            texture.reshape(3, -1).mean(axis=1), checkpoint)
+            model, curve = gl.train_geolift(train_views, coarse, np.concatenate(starts),
+                                            gl.TrainSettings.from_config(cfg), cfg.net, texture, checkpoint)
             writer.timing["train_s"] = round(time.perf_counter() - started, 3)
-            writer.metrics.update(gl.fit_report(model, train_views, normal_maps, texture))
-            validation = gl.fit_report(model, val_views, normal_maps, texture)
+            writer.metrics.update(gl.fit_report(model, train_views, coarse, texture))
+            validation = gl.fit_report(model, val_views, coarse, texture)
             writer.metrics.update({k.replace("train_", "val_", 1): v for k, v in validation.items()})
             extra = {"uv_resolution": int(cfg.net.uv_resolution), "mean_texture": torch.from_numpy(texture),
                      "flat_scale": float(np.median([_flat_scale(p[0], p[2]) for p in parts])),

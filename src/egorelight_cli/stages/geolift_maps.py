@@ -22,7 +22,7 @@ from egorelight_cli.nn.geolift_net import GeoLiftNet
 from egorelight_cli.render.lighting import CaptureEnvmaps, light_intensities
 from egorelight_cli.render.lightstage import LightStage
 from egorelight_cli.render.raster import rasterize_uv
-from egorelight_cli.render.uv_features import irradiance_map, shadow_map, texel_lighting, texel_map
+from egorelight_cli.render.uv_features import irradiance_map, shadow_map, texel_lighting, texel_map, texel_surface
 from egorelight_cli.stages import geolift as gl
 from egorelight_cli.stages.geolift_eval import GeoLiftScores, GeoLiftTruth
 from egorelight_cli.structures.character import Character
@@ -58,7 +58,8 @@ def write_uvmaps(writer: ArtifactWriter, cfg: Config, model: GeoLiftNet, extra: 
 
     raster = rasterize_uv(character.face_uvs, int(extra["uv_resolution"]))
     coverage = raster.coverage
-    normal_maps = gl.coarse_normal_maps(raster, meshes.vertices, character.faces)
+    coarse = gl.coarse_maps(raster, meshes.vertices, character.faces, character.face_uvs)
+    normal_maps = coarse.normals
     mean_texture = extra["mean_texture"].numpy()
     lit = capture is not None and sequence is not None and bool(cfg.lighting.features) and bool(sequence.lights)
     lightstage = LightStage.from_json(capture.lights_path()) if lit else None
@@ -75,7 +76,7 @@ def write_uvmaps(writer: ArtifactWriter, cfg: Config, model: GeoLiftNet, extra: 
     for t in console.progress(range(T), total=T, desc="geolift"):
         f = int(meshes.frame_ids[t])
         started = time.perf_counter()
-        normals, texture = gl.predict_maps(model, normal_maps, t)
+        normals, texture = gl.predict_maps(model, coarse, t)
         timing["network_s"] += time.perf_counter() - started
         layers = {"normal": np.moveaxis(normals, 0, -1) * coverage[..., None],
                   "albedo": np.moveaxis(texture, 0, -1) * coverage[..., None],
@@ -90,8 +91,9 @@ def write_uvmaps(writer: ArtifactWriter, cfg: Config, model: GeoLiftNet, extra: 
         write_exr_layers(writer.path(map_path(f)), layers)
         truth_normals = None
         if truth is not None and truth.has(f):
-            truth_normals, truth_texture, valid = truth.frame(f)
-            scores.add(coverage, normals, normal_maps[t], texture, mean_texture, truth_normals, truth_texture, valid)
+            surface = texel_surface(raster, meshes.vertices[t], character.faces)
+            scores.add(truth, f, surface.points, normals, normal_maps[t], texture, mean_texture)
+            truth_normals = truth.frame(f)[0]
         if t in preview_at:
             tiles = [_normal_image(normal_maps[t], coverage), _normal_image(normals, coverage),
                      _texture_image(texture, coverage)]

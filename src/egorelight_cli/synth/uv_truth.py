@@ -37,7 +37,9 @@ class UVTruth:
     def __init__(self, subject: Subject, appearance: Appearance, lightstage: LightStage, flat_intensity: float,
                  exposure: float, resolution: int):
         self.subject, self.lightstage = subject, lightstage
-        self.raster = rasterize_uv(subject.face_uvs, int(resolution))
+        # faithful to UV (no conservative pass): a texel is the surface point at its own UV, the
+        # point any mesh in the same layout shows there
+        self.raster = rasterize_uv(subject.face_uvs, int(resolution), conservative=False)
         covered = self.raster.coverage
         self.face_id = self.raster.face_id[covered]
         self.uv = texel_centres_uv(self.raster.resolution)[covered]
