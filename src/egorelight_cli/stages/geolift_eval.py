@@ -17,11 +17,12 @@ texture ``albedo / pi * E_flat * exposure``. It is compared with a predicted tex
   tracking's sliding, which no appearance model can undo: networks trained on images learn the
   detail *where the mesh shows it*.
 
-Truth maps are looked up at the nearest texel the truth covers. The surface comparison scores
-every covered texel; the material comparison those that sample their own UV (not moved by the
-raster's conservative pass, see :func:`~egorelight_cli.render.raster.rasterize_uv`: at 64x64 that
-pass moves 40 % of the character's texels to small faces nearby) and that the truth covers
-entirely after area resampling. Next to every score is its baseline: the tracked
+Truth maps are looked up at the nearest texel the truth covers. Both comparisons score the texels
+that sample their own UV: the raster's conservative pass (:func:`~egorelight_cli.render.raster.rasterize_uv`)
+moves texels to faces smaller than a texel nearby (40 % of the character's texels at 64x64),
+and what the maps hold there was learned through the UV lookups of the pixels of *other* faces,
+so neither truth is the right one for them. The material comparison also needs the truth to
+cover the texel entirely after area resampling. Next to every score is its baseline: the tracked
 mesh's coarse normals and the mean texture. The specular sheen of the flat-lit images is not
 part of the truth; it biases the network and the baseline alike.
 
@@ -169,8 +170,8 @@ class GeoLiftScores:
         surface = truth.at_surface(frame_id, points)
         if surface is not None:
             truth_normals, truth_texture, distance = surface
-            self._add("", np.ones(len(distance), bool), texels, truth_normals, truth_texture, maps)
-            self.rows["surface_distance_median_mm"].append(float(np.median(distance) * 1000))
+            self._add("", truth.faithful, texels, truth_normals, truth_texture, maps)
+            self.rows["surface_distance_median_mm"].append(float(np.median(distance[truth.faithful]) * 1000))
 
     def metrics(self) -> dict:
         return {key: float(np.mean(values)) if values else None for key, values in self.rows.items()}
