@@ -21,7 +21,7 @@ MAKE_JOBS = $(patsubst -j%,%,$(filter -j%,$(MAKEFLAGS)))
 THREADS  ?= $(if $(filter -j%,$(MAKEFLAGS)),$(shell expr $$(nproc) / $(or $(MAKE_JOBS),$$(nproc)) \| 1))
 EGOFLAGS ?= --preset $(PRESET) $(if $(THREADS),--threads $(THREADS))
 
-.PHONY: all venv demo test bench clean distclean subject
+.PHONY: all venv demo test bench clean distclean subject relight-rows
 
 all: demo
 
@@ -105,10 +105,18 @@ $(SUBJECT)/motion/%/manifest.json: $(SUBJECT)/keypoints/%/manifest.json $(CHARAC
 	$(EGO) $(EGOFLAGS) ik --in $(SUBJECT)/keypoints/$* --character $(SUBJECT)/character \
 		--model $(SUBJECT)/models/ik $(call GT,$*) --out $(SUBJECT)/motion/$*
 
+# ik from a keypoints file: $(1) keypoints, $(2) sequence, $(3) output
+IK_FROM = $(EGO) $(EGOFLAGS) ik --in $(1) --character $(SUBJECT)/character --model $(SUBJECT)/models/ik \
+	$(call GT,$(2)) --out $(3)
+
 # motion_mocap/<seq>: from the studio's markerless mocap (training supervision of the avatar)
 $(SUBJECT)/motion_mocap/%/manifest.json: $(CAPTURE) $(CHARACTER) $(IK_MODEL)
-	$(EGO) $(EGOFLAGS) ik --in $(SUBJECT)/capture/sequences/$*/mocap.npz --character $(SUBJECT)/character \
-		--model $(SUBJECT)/models/ik $(call GT,$*) --out $(SUBJECT)/motion_mocap/$*
+	$(call IK_FROM,$(SUBJECT)/capture/sequences/$*/mocap.npz,$*,$(SUBJECT)/motion_mocap/$*)
+
+# motion_truth/<seq>: from the TRUE keypoints (evaluation only: the relight rows that isolate the
+# tracking error, see renders_truth below)
+$(SUBJECT)/motion_truth/%/manifest.json: $(CAPTURE) $(CHARACTER) $(IK_MODEL)
+	$(call IK_FROM,$(SUBJECT)/capture/groundtruth/$*/keypoints.npz,$*,$(SUBJECT)/motion_truth/$*)
 
 # ---------------------------------------------------------------- egodepth (Sec. egocentric depth estimator)
 # EGODEPTH_METHOD=sgbm gives the classical stereo baseline instead of the trained network.
@@ -155,19 +163,25 @@ $(SUBJECT)/meshes/%/manifest.json: $(SUBJECT)/motion/%/manifest.json $(SUBJECT)/
 GEOLIFT_MODEL := $(SUBJECT)/models/geolift/manifest.json
 GEOLIFT_TRAIN_SEQS ?= relight_train ego_train
 
+# the student from a motion: $(1) motion, $(2) sequence, $(3) output
+STUDENT_FROM = $(EGO) $(EGOFLAGS) animate --no-depth --motion $(1) --model $(SUBJECT)/models/animate_student \
+	--character $(SUBJECT)/character --capture $(SUBJECT)/capture --seq $(2) --out $(3)
+
 $(SUBJECT)/meshes_student/%/manifest.json: $(SUBJECT)/motion_mocap/%/manifest.json $(ANIMATE_STUDENT) $(CHARACTER) \
 		$(CAPTURE)
-	$(EGO) $(EGOFLAGS) animate --no-depth --motion $(SUBJECT)/motion_mocap/$* --model $(SUBJECT)/models/animate_student \
-		--character $(SUBJECT)/character --capture $(SUBJECT)/capture --seq $* --out $(SUBJECT)/meshes_student/$*
+	$(call STUDENT_FROM,$(SUBJECT)/motion_mocap/$*,$*,$(SUBJECT)/meshes_student/$*)
 
 $(GEOLIFT_MODEL): $(CAPTURE) $(CHARACTER) $(foreach s,$(GEOLIFT_TRAIN_SEQS),$(SUBJECT)/meshes_student/$(s)/manifest.json)
 	$(EGO) $(EGOFLAGS) train geolift --capture $(SUBJECT)/capture \
 		$(foreach s,$(GEOLIFT_TRAIN_SEQS),--meshes $(SUBJECT)/meshes_student/$(s) --seq $(s)) \
 		--character $(SUBJECT)/character --out $(SUBJECT)/models/geolift
 
+# geolift of meshes: $(1) meshes, $(2) sequence, $(3) output
+GEOLIFT_OF = $(EGO) $(EGOFLAGS) geolift --meshes $(1) --model $(SUBJECT)/models/geolift \
+	--character $(SUBJECT)/character --capture $(SUBJECT)/capture --seq $(2) --out $(3)
+
 $(SUBJECT)/uvmaps/%/manifest.json: $(SUBJECT)/meshes/%/manifest.json $(GEOLIFT_MODEL) $(CHARACTER) $(CAPTURE)
-	$(EGO) $(EGOFLAGS) geolift --meshes $(SUBJECT)/meshes/$* --model $(SUBJECT)/models/geolift \
-		--character $(SUBJECT)/character --capture $(SUBJECT)/capture --seq $* --out $(SUBJECT)/uvmaps/$*
+	$(call GEOLIFT_OF,$(SUBJECT)/meshes/$*,$*,$(SUBJECT)/uvmaps/$*)
 
 # ---------------------------------------------------------------- relight (Sec. relightable avatar)
 # DiffuseNet + SpecularNet train on the HDR-lit frames of RELIGHT_TRAIN_SEQ (student meshes and their
@@ -177,8 +191,7 @@ RELIGHT_TRAIN_SEQ ?= relight_train
 
 $(SUBJECT)/uvmaps_student/%/manifest.json: $(SUBJECT)/meshes_student/%/manifest.json $(GEOLIFT_MODEL) $(CHARACTER) \
 		$(CAPTURE)
-	$(EGO) $(EGOFLAGS) geolift --meshes $(SUBJECT)/meshes_student/$* --model $(SUBJECT)/models/geolift \
-		--character $(SUBJECT)/character --capture $(SUBJECT)/capture --seq $* --out $(SUBJECT)/uvmaps_student/$*
+	$(call GEOLIFT_OF,$(SUBJECT)/meshes_student/$*,$*,$(SUBJECT)/uvmaps_student/$*)
 
 $(RELIGHT_MODEL): $(CAPTURE) $(CHARACTER) $(SUBJECT)/meshes_student/$(RELIGHT_TRAIN_SEQ)/manifest.json \
 		$(SUBJECT)/uvmaps_student/$(RELIGHT_TRAIN_SEQ)/manifest.json
@@ -186,10 +199,38 @@ $(RELIGHT_MODEL): $(CAPTURE) $(CHARACTER) $(SUBJECT)/meshes_student/$(RELIGHT_TR
 		--meshes $(SUBJECT)/meshes_student/$(RELIGHT_TRAIN_SEQ) --uvmaps $(SUBJECT)/uvmaps_student/$(RELIGHT_TRAIN_SEQ) \
 		--character $(SUBJECT)/character --out $(SUBJECT)/models/relight
 
+# relit renders of meshes + their uvmaps: $(1) meshes, $(2) uvmaps, $(3) sequence, $(4) output
+RELIGHT_OF = $(EGO) $(EGOFLAGS) relight --capture $(SUBJECT)/capture --meshes $(1) --uvmaps $(2) \
+	--model $(SUBJECT)/models/relight --character $(SUBJECT)/character --seq $(3) --out $(4)
+
 $(SUBJECT)/renders/%/manifest.json: $(SUBJECT)/meshes/%/manifest.json $(SUBJECT)/uvmaps/%/manifest.json \
 		$(RELIGHT_MODEL) $(CHARACTER) $(CAPTURE)
-	$(EGO) $(EGOFLAGS) relight --capture $(SUBJECT)/capture --meshes $(SUBJECT)/meshes/$* --uvmaps $(SUBJECT)/uvmaps/$* \
-		--model $(SUBJECT)/models/relight --character $(SUBJECT)/character --seq $* --out $(SUBJECT)/renders/$*
+	$(call RELIGHT_OF,$(SUBJECT)/meshes/$*,$(SUBJECT)/uvmaps/$*,$*,$(SUBJECT)/renders/$*)
+
+# The same avatar and protocol on better meshes (issue 18's rows that show what tracking costs):
+# renders_studio/<seq>: the meshes a lightstage tracks (its markerless mocap -> the student), no
+# egocentric error; renders_truth/<seq>: meshes from the TRUE keypoints (ground truth, evaluation
+# only), what remains is the avatar's own error (skeleton fit, the student's surface).
+$(SUBJECT)/renders_studio/%/manifest.json: $(SUBJECT)/meshes_student/%/manifest.json \
+		$(SUBJECT)/uvmaps_student/%/manifest.json $(RELIGHT_MODEL) $(CHARACTER) $(CAPTURE)
+	$(call RELIGHT_OF,$(SUBJECT)/meshes_student/$*,$(SUBJECT)/uvmaps_student/$*,$*,$(SUBJECT)/renders_studio/$*)
+
+$(SUBJECT)/meshes_truth/%/manifest.json: $(SUBJECT)/motion_truth/%/manifest.json $(ANIMATE_STUDENT) $(CHARACTER) \
+		$(CAPTURE)
+	$(call STUDENT_FROM,$(SUBJECT)/motion_truth/$*,$*,$(SUBJECT)/meshes_truth/$*)
+
+$(SUBJECT)/uvmaps_truth/%/manifest.json: $(SUBJECT)/meshes_truth/%/manifest.json $(GEOLIFT_MODEL) $(CHARACTER) \
+		$(CAPTURE)
+	$(call GEOLIFT_OF,$(SUBJECT)/meshes_truth/$*,$*,$(SUBJECT)/uvmaps_truth/$*)
+
+$(SUBJECT)/renders_truth/%/manifest.json: $(SUBJECT)/meshes_truth/%/manifest.json \
+		$(SUBJECT)/uvmaps_truth/%/manifest.json $(RELIGHT_MODEL) $(CHARACTER) $(CAPTURE)
+	$(call RELIGHT_OF,$(SUBJECT)/meshes_truth/$*,$(SUBJECT)/uvmaps_truth/$*,$*,$(SUBJECT)/renders_truth/$*)
+
+# both rows for SEQ; the truth row only where the capture has ground truth (known after synth runs)
+relight-rows: $(SUBJECT)/renders_studio/$(SEQ)/manifest.json
+	@if [ -f $(SUBJECT)/capture/groundtruth/$(SEQ)/keypoints.npz ]; then \
+		$(MAKE) --no-print-directory $(SUBJECT)/renders_truth/$(SEQ)/manifest.json; fi
 
 # ---------------------------------------------------------------- envmap (Sec. egocentric HDR environment map)
 # The front-camera panorama's colour model is fitted by inverse rendering of the relight avatar into
@@ -224,7 +265,7 @@ $(COMPOSITE): $(SUBJECT)/meshes/$(SEQ)/manifest.json $(SUBJECT)/uvmaps/$(SEQ)/ma
 
 subject: $(CAPTURE) $(CHARACTER) $(PREVIEWS)/character.png $(CALIBRATION) \
 	$(SUBJECT)/meshes/$(SEQ)/manifest.json $(ANIMATE_STUDENT) $(SUBJECT)/uvmaps/$(SEQ)/manifest.json \
-	$(SUBJECT)/renders/$(SEQ)/manifest.json $(SUBJECT)/envmap/wild/manifest.json $(COMPOSITE)
+	$(SUBJECT)/renders/$(SEQ)/manifest.json relight-rows $(SUBJECT)/envmap/wild/manifest.json $(COMPOSITE)
 
 # one HTML page for the subject (reads the artifacts only); after every artifact `subject` makes,
 # and again when any finished artifact's manifest is newer

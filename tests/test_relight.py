@@ -85,3 +85,45 @@ def test_relight_needs_lighting_features(tiny_capture, skinned_meshes, relight_i
     err = capsys.readouterr().err.strip()
     assert code == 2 and len(err.splitlines()) == 1 and "egorelight: error:" in err
     assert not (tmp_path / "renders").exists()
+
+
+def test_relight_under_another_light_recomputes_the_features_and_scores_nothing(
+        tiny_capture, skinned_meshes, relight_inputs, relight_model, character, tmp_path, capsys):
+    from egorelight_cli.io.capture import open_capture
+    from egorelight_cli.io.mesh_sequence import load_meshes
+    from egorelight_cli.artifacts import open_artifact
+    from egorelight_cli.stages.relight_commands import LightingOverride, RelightData
+
+    # under the flat light the features are the flat-lit ones: the Lambert relighting of the
+    # flat-lit texture is the texture itself (chi = pi rho s_flat up to the lights' colour gains,
+    # the uvmaps' flat_scale is 1)
+    capture, _ = open_capture(tiny_capture)
+    meshes, _ = load_meshes(skinned_meshes / "test.npz")
+    uvmaps = open_artifact(relight_inputs / "uvmaps_test", kind="uvmaps")
+    resolution = read_exr(next((relight_inputs / "uvmaps_test" / "maps").glob("*.exr"))).shape[0]
+    data = RelightData(capture, capture.sequence("test"), meshes, uvmaps, character, resolution, 1, 4,
+                       LightingOverride.parse(True, None, None, 0.0))
+    frame = data.frame(int(meshes.frame_ids[0]))
+    albedo = frame.maps[0:3].permute(1, 2, 0)[data.coverage]
+    lit = frame.flat_irradiance[:, 0] > 0.05  # (texels in deep shadow are floored)
+    relative = np.abs(frame.lambert[lit].numpy() / np.maximum(albedo[lit].numpy(), 1e-6) - 1)
+    assert np.median(relative) < 0.02 and relative.max() < 0.15
+
+    envmap = sorted((tiny_capture / "envmaps").glob("*.exr"))[0]
+    for option in (["--flat"], ["--olat", "3"], ["--envmap", envmap, "--yaw", "30"]):
+        out = tmp_path / f"renders_{option[0].strip('-')}"
+        assert _main("--preset", "tiny", "-q", "relight", "--capture", tiny_capture, "--meshes",
+                     skinned_meshes / "test.npz", "--uvmaps", relight_inputs / "uvmaps_test", "--model", relight_model,
+                     "--seq", "test", *option, "--out", out) == 0
+        metrics = json.loads((out / "manifest.json").read_text())["metrics"]
+        assert metrics["scored"].startswith("no") and "psnr" not in metrics
+        assert metrics["views"] == meshes.num_frames * len(metrics["cameras"])  # every frame, whatever its light
+        assert option[0].strip("-") in metrics["lighting"]
+    capsys.readouterr()
+    for bad in (["--flat", "--olat", "1"], ["--olat", "100000"], ["--envmap", tmp_path / "missing.exr"]):
+        out = tmp_path / "renders_bad"
+        code = _main("--preset", "tiny", "relight", "--capture", tiny_capture, "--meshes", skinned_meshes / "test.npz",
+                     "--uvmaps", relight_inputs / "uvmaps_test", "--model", relight_model, *bad, "--out", out)
+        err = capsys.readouterr().err.strip()
+        assert code == 2 and len(err.splitlines()) == 1 and "egorelight: error:" in err, (bad, err)
+        assert not out.exists()

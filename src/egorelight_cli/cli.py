@@ -484,16 +484,25 @@ def train_relight(ctx: click.Context, capture: Path, meshes_path: Path, uvmaps_p
               help="Render into the held-out studio cameras or into all of them.")
 @click.option("--export", type=click.Choice(["none", "ply"]), default=None,
               help="Also write each frame's Gaussians as a standard 3DGS PLY under gaussians/.")
+@click.option("--flat", is_flag=True, help="Light every frame with the lightstage's flat lighting (not scored).")
+@click.option("--olat", type=click.IntRange(min=0), default=None, help="Light every frame with light I alone (not scored).")
+@click.option("--envmap", "envmap_path", type=click.Path(path_type=Path), default=None,
+              help="Light every frame with this HDR map (.exr/.hdr, or an envmap artifact; not scored).")
+@click.option("--yaw", type=float, default=0.0, show_default=True, help="Rotation of --envmap about the up axis, degrees.")
 @click.option("--out", required=True, type=click.Path(path_type=Path), help="renders artifact directory.")
 @common_options
 @click.pass_context
 def relight_command(ctx: click.Context, capture: Path, meshes_path: Path, uvmaps_path: Path, model_path: Path,
-                    character: str, seq: str, cameras: str, export: str | None, out: Path) -> None:
-    """Render the relightable avatar under a sequence's lighting and score it against the captured images."""
+                    character: str, seq: str, cameras: str, export: str | None, flat: bool, olat: int | None,
+                    envmap_path: Path | None, yaw: float, out: Path) -> None:
+    """Render the relightable avatar under a sequence's lighting (or another) and score it against the captured images."""
+    from egorelight_cli.stages.relight_commands import LightingOverride
+
     if export is not None:  # a config key, so it enters the cache key and the manifest
         _options(ctx).sets.append(f"export={export}")
+    lighting = LightingOverride.parse(flat, olat, envmap_path, yaw)
     _relight_commands(ctx).predict(capture, meshes_path, uvmaps_path, model_path, character, seq, cameras == "all",
-                                   out)
+                                   out, lighting)
 
 
 # -------------------------------------------------------------------------------- envmap

@@ -172,6 +172,16 @@ def irradiance_map(transfer: torch.Tensor, lightstage: LightStage, intensities) 
     return transfer.to(radiance.dtype) @ radiance
 
 
+def lighting_feature_maps(raster: UVRaster, vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray,
+                          lightstage: LightStage, intensities) -> tuple[np.ndarray, np.ndarray]:
+    """UV maps ``(rho (H,W,1), chi (H,W,3))`` float32 of one posed mesh lit by ``intensities`` (L,3),
+    shaded with the normal map ``normals`` (3,H,W) (GeoLift's) and the mesh's own shadows."""
+    lit = texel_lighting(raster, vertices, faces, lightstage, np.moveaxis(normals, 0, -1)[raster.coverage])
+    rho = shadow_map(lit.transfer).numpy()[:, None]
+    chi = irradiance_map(lit.transfer, lightstage, intensities).numpy()
+    return lit.surface.to_map(rho.astype(np.float32)), lit.surface.to_map(chi.astype(np.float32))
+
+
 def _half_vector_cosines(points: np.ndarray, normals: np.ndarray, light_positions: np.ndarray,
                          camera_centre: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``n.w`` (N,L), ``n.v`` (N,1) and ``n.h`` (N,L) for lights (L,3) seen from one camera centre.

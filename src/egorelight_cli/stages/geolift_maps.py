@@ -22,21 +22,12 @@ from egorelight_cli.nn.geolift_net import GeoLiftNet
 from egorelight_cli.render.lighting import CaptureEnvmaps, light_intensities
 from egorelight_cli.render.lightstage import LightStage
 from egorelight_cli.render.raster import rasterize_uv
-from egorelight_cli.render.uv_features import irradiance_map, shadow_map, texel_lighting, texel_map, texel_surface
+from egorelight_cli.render.uv_features import lighting_feature_maps, texel_map, texel_surface
 from egorelight_cli.stages import geolift as gl
 from egorelight_cli.stages.geolift_eval import GeoLiftScores, GeoLiftTruth
 from egorelight_cli.structures.character import Character
 
 PREVIEW_TILE = 128  # pixels per UV map in the preview
-
-
-def _lighting_features(vertices: np.ndarray, faces: np.ndarray, raster, normals: np.ndarray, lightstage: LightStage,
-                       intensities: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(rho (H,W,1), chi (H,W,3)) with the lifted normals (3,H,W) and the tracked mesh's shadows."""
-    lit = texel_lighting(raster, vertices, faces, lightstage, np.moveaxis(normals, 0, -1)[raster.coverage])
-    rho = shadow_map(lit.transfer).numpy()[:, None]
-    chi = irradiance_map(lit.transfer, lightstage, intensities).numpy()
-    return lit.surface.to_map(rho.astype(np.float32)), lit.surface.to_map(chi.astype(np.float32))
 
 
 def _normal_image(maps: np.ndarray, coverage: np.ndarray) -> np.ndarray:
@@ -84,8 +75,8 @@ def write_uvmaps(writer: ArtifactWriter, cfg: Config, model: GeoLiftNet, extra: 
         if f in lit_frames:
             started = time.perf_counter()
             intensities = light_intensities(lightstage, sequence.light_entry(f), envmaps)
-            layers["shadow"], layers["diffuse"] = _lighting_features(meshes.vertices[t], character.faces, raster,
-                                                                     normals, lightstage, intensities)
+            layers["shadow"], layers["diffuse"] = lighting_feature_maps(raster, meshes.vertices[t], character.faces,
+                                                                       normals, lightstage, intensities)
             timing["features_s"] += time.perf_counter() - started
             featured += 1
         write_exr_layers(writer.path(map_path(f)), layers)

@@ -31,7 +31,7 @@ from egorelight_cli.errors import EgorelightError
 from egorelight_cli.geometry.cameras import Camera
 from egorelight_cli.nn.relight_net import DiffuseNet, SpecularNet
 from egorelight_cli.render.gaussians import GaussianRender, render_gaussians
-from egorelight_cli.render.image_metrics import ssim
+from egorelight_cli.render.image_metrics import ssim, tonemap_for_metrics
 from egorelight_cli.render.lightstage import LightStage
 from egorelight_cli.render.raster import UVRaster, rasterize_uv
 from egorelight_cli.render.uv_features import TexelLighting, ray_encoding, select_rays, texel_lighting, texel_surface
@@ -193,15 +193,29 @@ def render_relit(model: RelightModel, frame: RelightFrame, coverage: torch.Tenso
     return render_gaussians(avatar.gaussians, camera, passes=passes), avatar
 
 
+LOSS_SPACES = ("linear", "display")
+
+
 def relight_loss(render: GaussianRender, target: torch.Tensor, mask: torch.Tensor,
-                 regulariser: torch.Tensor) -> dict[str, torch.Tensor]:
-    """The paper's training loss on one view; ``target`` (H,W,3) linear, ``mask`` (H,W) subject."""
+                 regulariser: torch.Tensor, space: str = "linear", weights: dict | None = None) -> dict[str, torch.Tensor]:
+    """The paper's training loss on one view; ``target`` (H,W,3) linear, ``mask`` (H,W) subject.
+
+    ``space``: ``linear`` compares linear radiance (bright pixels dominate); ``display`` compares
+    the images after the metric tone mapping (:func:`~egorelight_cli.render.image_metrics.tonemap_for_metrics`),
+    the space the renders are scored in, where a dark garment's error counts as much as a lit one's.
+    ``weights``: of the terms ``l1, ssim, reg, diffuse`` (default :data:`LOSS_WEIGHTS`, the paper's).
+    """
+    weights = LOSS_WEIGHTS if weights is None else weights
+    if space not in LOSS_SPACES:
+        raise EgorelightError(f"train.loss_space must be one of {', '.join(LOSS_SPACES)}, got {space!r}")
     weight = mask.to(target.dtype)[..., None]
-    image, diffuse = render.colour * weight, render.passes["diffuse"] * weight
-    target = target * weight
+    image, diffuse = render.colour, render.passes["diffuse"]
+    if space == "display":
+        image, diffuse, target = (tonemap_for_metrics(x) for x in (image, diffuse, target))
+    image, diffuse, target = image * weight, diffuse * weight, target * weight
     rows, cols = torch.nonzero(mask, as_tuple=True)
     box = (slice(max(int(rows.min()) - 8, 0), int(rows.max()) + 9), slice(max(int(cols.min()) - 8, 0), int(cols.max()) + 9))
     terms = {"l1": (image - target).abs().mean(), "ssim": 1.0 - ssim(image[box], target[box]),
              "reg": regulariser, "diffuse": (diffuse - target).abs().mean()}
-    terms["loss"] = sum(LOSS_WEIGHTS[k] * v for k, v in terms.items())
+    terms["loss"] = sum(float(weights[k]) * v for k, v in terms.items())
     return terms

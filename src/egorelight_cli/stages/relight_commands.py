@@ -9,7 +9,11 @@ non-held-out studio cameras and writes a model artifact; the last frames are hel
 sequence's own lighting into the sequence's held-out cameras (``--cameras all``: every studio
 camera) and writes a ``renders`` artifact: ``<camera>/<frame>.exr`` (linear HDR, layers ``""``
 RGB, ``diffuse``, ``specular``, ``alpha``) and ``<camera>/<frame>.png`` (the metric tone
-mapping), ``preview.png``, and the scores of every view against the captured image.
+mapping), ``preview.png``, and the scores of every view against the captured image. Under
+another lighting than the sequence's own (:class:`LightingOverride`: ``--flat``, ``--olat i``,
+``--envmap FILE`` [``--yaw``], where FILE may be an ``envmap`` artifact) every frame with UV maps
+is rendered, ``rho``/``chi`` are recomputed for that light from GeoLift's normals and the mesh,
+and nothing is scored (no image was captured under that light).
 """
 
 from __future__ import annotations
@@ -34,21 +38,54 @@ from egorelight_cli.pipeline import StageRun
 from egorelight_cli.render.lighting import CaptureEnvmaps, light_intensities
 from egorelight_cli.render.lightstage import LightStage
 from egorelight_cli.render.raster import rasterize_uv
-from egorelight_cli.render.uv_features import TexelLighting
+from egorelight_cli.render.uv_features import TexelLighting, lighting_feature_maps
 from egorelight_cli.stages import relight as rl
 from egorelight_cli.stages.geolift_commands import load_character_meshes, map_path, training_cameras
-from egorelight_cli.stages.relight_eval import RelightScores, score_view
+from egorelight_cli.stages.relight_eval import RelightScores, display_images, score_view
 
 PREVIEW_PNG = "preview.png"
 UVMAP_LAYERS = ("albedo", "shadow", "normal", "diffuse")
+PREVIEW_COLUMNS = ("target", "render", "lambert", "baked")
+
+
+@dataclass(frozen=True)
+class LightingOverride:
+    """Another lighting for every frame: a ``sequence.json``-style light entry (``flat``, ``olat``
+    with ``olat_index``, ``envmap`` with ``envmap`` and ``yaw_deg``), the maps it names and the
+    file they came from."""
+
+    entry: dict
+    envmaps: dict
+    source: Path | None = None
+
+    @classmethod
+    def parse(cls, flat: bool, olat: int | None, envmap: Path | None, yaw_deg: float) -> "LightingOverride | None":
+        """From the command's options (at most one of them), or None for the sequence's own light."""
+        from egorelight_cli.render.envmaps import load_envmap
+
+        chosen = [name for name, given in (("--flat", flat), ("--olat", olat is not None), ("--envmap", envmap))
+                  if given]
+        if len(chosen) > 1:
+            raise EgorelightError(f"give at most one lighting: {' and '.join(chosen)} were given")
+        if flat:
+            return cls({"pattern": "flat", "description": "flat"}, {})
+        if olat is not None:
+            return cls({"pattern": "olat", "olat_index": int(olat), "description": f"olat {int(olat)}"}, {})
+        if envmap is not None:
+            path = Path(envmap)
+            path = path / "envmap.exr" if path.is_dir() else path  # an envmap artifact
+            return cls({"pattern": "envmap", "envmap": "user", "yaw_deg": float(yaw_deg),
+                        "description": f"envmap {path} yaw {float(yaw_deg):g} deg"}, {"user": load_envmap(path)}, path)
+        return None
 
 
 class RelightData:
     """Frames (uvmaps + meshes + lighting) and studio views of one sequence, loaded on demand."""
 
     def __init__(self, capture: Capture, sequence, meshes, uvmaps: Artifact, character, resolution: int,
-                 attention_level: int, rays: int):
+                 attention_level: int, rays: int, lighting: LightingOverride | None = None):
         self.capture, self.sequence, self.meshes = capture, sequence, meshes
+        self.lighting = lighting
         self.uvmaps, self.character = uvmaps, character
         self.raster = rasterize_uv(character.face_uvs, resolution)
         self.low_raster = rl.low_resolution_raster(character.face_uvs, resolution, attention_level)
@@ -82,7 +119,9 @@ class RelightData:
         return self.meshes.vertices[self.meshes.index_of(frame_id)].astype(np.float64)
 
     def known_intensities(self, frame_id: int) -> np.ndarray:
-        """(L,3) the frame's recorded light entry."""
+        """(L,3) the frame's recorded light entry (or the override's)."""
+        if self.lighting is not None:
+            return light_intensities(self.lightstage, self.lighting.entry, self.lighting.envmaps)
         return light_intensities(self.lightstage, self.sequence.light_entry(frame_id), self.envmaps)
 
     def assemble(self, frame_id: int, maps: dict[str, np.ndarray], intensities: np.ndarray) -> rl.RelightFrame:
@@ -93,8 +132,15 @@ class RelightData:
 
     def frame(self, frame_id: int) -> rl.RelightFrame:
         if frame_id not in self._frames:
-            self._frames[frame_id] = self.assemble(frame_id, self.read_maps(frame_id),
-                                                   self.known_intensities(frame_id))
+            intensities = self.known_intensities(frame_id)
+            if self.lighting is None:
+                maps = self.read_maps(frame_id)
+            else:  # rho/chi of the uvmaps belong to the captured light: recompute them for this one
+                maps = self.read_maps(frame_id, ("albedo", "normal"))
+                maps["shadow"], maps["diffuse"] = lighting_feature_maps(
+                    self.raster, self.vertices(frame_id), self.character.faces, np.moveaxis(maps["normal"], -1, 0),
+                    self.lightstage, intensities)
+            self._frames[frame_id] = self.assemble(frame_id, maps, intensities)
         return self._frames[frame_id]
 
     def ray_lighting(self, frame_id: int) -> TexelLighting:
@@ -121,10 +167,11 @@ class RelightData:
         return torch.from_numpy(np.ascontiguousarray(image)), torch.from_numpy(mask)
 
 
-def _lit_frames(sequence, meshes, uvmaps: Artifact) -> np.ndarray:
-    """Frames with an ``envmap`` light entry, a mesh and a uvmaps file."""
+def _lit_frames(sequence, meshes, uvmaps: Artifact, any_light: bool = False) -> np.ndarray:
+    """Frames with an ``envmap`` light entry (any entry with ``any_light``), a mesh and a uvmaps file."""
     entries = {int(f): e for f, e in zip(sequence.frame_ids, sequence.lights)}
-    frames = [int(f) for f in meshes.frame_ids if entries.get(int(f), {}).get("pattern") == "envmap"
+    frames = [int(f) for f in meshes.frame_ids
+              if (any_light or entries.get(int(f), {}).get("pattern") == "envmap")
               and (uvmaps.root / map_path(int(f))).is_file()]
     return np.array(frames, np.int64)
 
@@ -136,8 +183,9 @@ def baseline_passes(frame: rl.RelightFrame, coverage: torch.Tensor) -> dict[str,
 
 def evaluate(model: rl.RelightModel, data: RelightData, views: list[tuple[int, str]], writer: ArtifactWriter | None,
              preview_count: int = 0, export_ply: bool = False) -> tuple[dict, list[np.ndarray]]:
-    """Render and score ``views``; write EXR/PNG renders when ``writer`` is given, and with
-    ``export_ply`` each frame's Gaussians (as seen by its first view) as a 3DGS PLY."""
+    """Render and score ``views`` (not scored under a lighting override); write EXR/PNG renders
+    when ``writer`` is given, and with ``export_ply`` each frame's Gaussians (as seen by its first
+    view) as a 3DGS PLY."""
     scores, previews = RelightScores(), []
     preview_at = set(np.linspace(0, len(views) - 1, min(preview_count, len(views))).round().astype(int).tolist()) \
         if preview_count and views else set()
@@ -149,8 +197,11 @@ def evaluate(model: rl.RelightModel, data: RelightData, views: list[tuple[int, s
             extra = {**baseline_passes(frame, data.coverage), "head": head}
             render, avatar = rl.render_relit(model, frame, data.coverage, data.capture.studio_cameras[camera_name],
                                              rays, valid, extra_passes=extra)
-            target, mask = data.target(f, camera_name)
-            tonemapped = score_view(scores, render, target, mask)
+            if data.lighting is None:
+                target, mask = data.target(f, camera_name)
+                tonemapped = score_view(scores, render, target, mask)
+            else:
+                tonemapped = display_images(render)
             if writer is not None:
                 stem = f"{camera_name}/{frame_file(f, '')}"
                 write_exr_layers(writer.path(f"{stem}.exr"), {
@@ -163,7 +214,9 @@ def evaluate(model: rl.RelightModel, data: RelightData, views: list[tuple[int, s
 
                     write_gaussian_ply(ply, avatar.gaussians, rgb=tonemap_for_metrics(avatar.gaussians.colours).numpy())
             if i in preview_at:
-                previews.append(np.concatenate([tonemapped[k] for k in ("target", "render", "lambert", "baked")], 1))
+                previews.append(np.concatenate([tonemapped[k] for k in PREVIEW_COLUMNS if k in tonemapped], 1))
+    if data.lighting is not None:
+        return {"scored": f"no: lighting {data.lighting.entry['description']} was not captured"}, previews
     return scores.metrics(), previews
 
 
@@ -195,7 +248,7 @@ class RelightCommands:
     run: StageRun
 
     def _load(self, capture_path: Path, meshes_path: Path, uvmaps_path: Path, character_spec: str, seq: str,
-              net: dict):
+              net: dict, lighting: LightingOverride | None = None):
         from egorelight_cli.stages.character_commands import load_character
 
         character, character_artifact = load_character(character_spec)
@@ -204,10 +257,11 @@ class RelightCommands:
         meshes, meshes_artifact = load_character_meshes(meshes_path, character)
         uvmaps = open_artifact(uvmaps_path, kind="uvmaps")
         data = RelightData(capture, sequence, meshes, uvmaps, character, int(net["uv_resolution"]),
-                           int(net["attention_level"]), int(net["rays"]))
-        frames = _lit_frames(sequence, meshes, uvmaps)
+                           int(net["attention_level"]), int(net["rays"]), lighting)
+        frames = _lit_frames(sequence, meshes, uvmaps, any_light=lighting is not None)
         if not len(frames):
-            raise EgorelightError(f"no HDR-lit frame of sequence {seq!r} has both a mesh and UV maps", uvmaps_path)
+            what = "frame" if lighting is not None else "HDR-lit frame"
+            raise EgorelightError(f"no {what} of sequence {seq!r} has both a mesh and UV maps", uvmaps_path)
         inputs = [a for a in (capture_artifact, character_artifact, meshes_artifact, uvmaps) if a is not None]
         return data, frames, inputs
 
@@ -219,6 +273,11 @@ class RelightCommands:
         if len(frames) < 2:
             raise EgorelightError(f"{len(frames)} HDR-lit frame(s): training and validation need at least 2",
                                   uvmaps_path)
+        if any(float(cfg.train.weights[k]) < 0 for k in rl.LOSS_WEIGHTS):
+            raise EgorelightError("train.weights must be non-negative")
+        if str(cfg.train.loss_space) not in rl.LOSS_SPACES:
+            raise EgorelightError(f"train.loss_space must be one of {', '.join(rl.LOSS_SPACES)}, "
+                                  f"got {cfg.train.loss_space!r}")
         held = max(1, int(round(float(cfg.train.validation_fraction) * len(frames))))
         cameras = training_cameras(data.capture, data.sequence)
         train_views = [(int(f), c) for f in frames[:-held] for c in cameras]
@@ -246,7 +305,8 @@ class RelightCommands:
                 render, avatar = rl.render_relit(model, data.frame(f), data.coverage,
                                                  data.capture.studio_cameras[camera_name], rays, valid, scale)
                 target, mask = data.target(f, camera_name)
-                return rl.relight_loss(render, target * scale, mask, avatar.regulariser)
+                return rl.relight_loss(render, target * scale, mask, avatar.regulariser, str(t.loss_space),
+                                       {k: float(t.weights[k]) for k in rl.LOSS_WEIGHTS})
 
             started = time.perf_counter()
             curve = train(model, optimizer, step, steps, checkpoint=checkpoint, log_every=int(t.log_every),
@@ -271,9 +331,10 @@ class RelightCommands:
         return result
 
     def predict(self, capture_path: Path, meshes_path: Path, uvmaps_path: Path, model_path: Path,
-                character_spec: str, seq: str, all_cameras: bool, out: Path) -> Path:
+                character_spec: str, seq: str, all_cameras: bool, out: Path,
+                lighting: LightingOverride | None = None) -> Path:
         model, net, model_artifact = load_relight_model(model_path)
-        data, frames, inputs = self._load(capture_path, meshes_path, uvmaps_path, character_spec, seq, net)
+        data, frames, inputs = self._load(capture_path, meshes_path, uvmaps_path, character_spec, seq, net, lighting)
         held_out = list(data.sequence.doc.get("held_out_cameras", []))
         cameras = training_cameras(data.capture, data.sequence) + held_out if all_cameras else held_out
         if not cameras:
@@ -288,8 +349,12 @@ class RelightCommands:
             writer.metrics.update({"sequence": seq, "cameras": cameras, "views": len(views), **metrics})
             if previews:
                 write_image(writer.path(PREVIEW_PNG), np.concatenate(previews, 0))
-            writer.units.update({"psnr": "dB on the metric tone mapping (exposure 1, sRGB, clipped)",
-                                 "ssim": "x100", "preview": "captured | relit | Lambert | baked"})
+            writer.metrics["lighting"] = "the sequence's own" if lighting is None else lighting.entry["description"]
+            writer.units.update({"psnr": "dB on the metric tone mapping (exposure 1, sRGB, clipped)", "ssim": "x100",
+                                 "preview": ("captured | " if lighting is None else "") + "relit | Lambert | baked"})
 
-        return self.run.produce(out, "renders", write, inputs=inputs + [model_artifact],
-                                options={"sequence": seq, "cameras": "all" if all_cameras else "held-out"})
+        light = None if lighting is None else {k: v for k, v in lighting.entry.items() if k != "description"}
+        sources = [lighting.source] if lighting is not None and lighting.source is not None else []
+        return self.run.produce(out, "renders", write, inputs=inputs + [model_artifact], source_files=sources,
+                                options={"sequence": seq, "cameras": "all" if all_cameras else "held-out",
+                                         "lighting": light})

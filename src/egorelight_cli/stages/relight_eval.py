@@ -35,6 +35,12 @@ class RelightScores:
         return out
 
 
+def display_images(render: GaussianRender) -> dict:
+    """The render and its baseline passes on the metric tone mapping, uint8 (H,W,3) by name."""
+    images = {"render": render.colour, "lambert": render.passes["lambert"], "baked": render.passes["baked"]}
+    return {k: (tonemap_for_metrics(v).clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8) for k, v in images.items()}
+
+
 def score_view(scores: RelightScores, render: GaussianRender, target: torch.Tensor, mask: torch.Tensor) -> dict:
     """Score one render against its captured image; returns the tone-mapped uint8 images by name."""
     head = render.passes["head"][..., 0] > 0.5 * render.alpha.clamp_min(1e-6)
