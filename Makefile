@@ -193,15 +193,20 @@ $(SUBJECT)/uvmaps_student/%/manifest.json: $(SUBJECT)/meshes_student/%/manifest.
 		$(CAPTURE)
 	$(call GEOLIFT_OF,$(SUBJECT)/meshes_student/$*,$*,$(SUBJECT)/uvmaps_student/$*)
 
-$(RELIGHT_MODEL): $(CAPTURE) $(CHARACTER) $(SUBJECT)/meshes_student/$(RELIGHT_TRAIN_SEQ)/manifest.json \
-		$(SUBJECT)/uvmaps_student/$(RELIGHT_TRAIN_SEQ)/manifest.json
-	$(EGO) $(EGOFLAGS) train relight --set train.sequence=$(RELIGHT_TRAIN_SEQ) --capture $(SUBJECT)/capture \
-		--meshes $(SUBJECT)/meshes_student/$(RELIGHT_TRAIN_SEQ) --uvmaps $(SUBJECT)/uvmaps_student/$(RELIGHT_TRAIN_SEQ) \
-		--character $(SUBJECT)/character --out $(SUBJECT)/models/relight
+RELIGHT_TRAIN_INPUTS := $(CAPTURE) $(CHARACTER) $(SUBJECT)/meshes_student/$(RELIGHT_TRAIN_SEQ)/manifest.json \
+	$(SUBJECT)/uvmaps_student/$(RELIGHT_TRAIN_SEQ)/manifest.json
+# train relight: $(1) extra options, $(2) output
+TRAIN_RELIGHT = $(EGO) $(EGOFLAGS) train relight --set train.sequence=$(RELIGHT_TRAIN_SEQ) $(1) \
+	--capture $(SUBJECT)/capture --meshes $(SUBJECT)/meshes_student/$(RELIGHT_TRAIN_SEQ) \
+	--uvmaps $(SUBJECT)/uvmaps_student/$(RELIGHT_TRAIN_SEQ) --character $(SUBJECT)/character --out $(2)
 
-# relit renders of meshes + their uvmaps: $(1) meshes, $(2) uvmaps, $(3) sequence, $(4) output
+$(RELIGHT_MODEL): $(RELIGHT_TRAIN_INPUTS)
+	$(call TRAIN_RELIGHT,,$(SUBJECT)/models/relight)
+
+# relit renders of meshes + their uvmaps: $(1) meshes, $(2) uvmaps, $(3) sequence, $(4) output,
+# $(5) the relight model (default models/relight)
 RELIGHT_OF = $(EGO) $(EGOFLAGS) relight --capture $(SUBJECT)/capture --meshes $(1) --uvmaps $(2) \
-	--model $(SUBJECT)/models/relight --character $(SUBJECT)/character --seq $(3) --out $(4)
+	--model $(or $(5),$(SUBJECT)/models/relight) --character $(SUBJECT)/character --seq $(3) --out $(4)
 
 $(SUBJECT)/renders/%/manifest.json: $(SUBJECT)/meshes/%/manifest.json $(SUBJECT)/uvmaps/%/manifest.json \
 		$(RELIGHT_MODEL) $(CHARACTER) $(CAPTURE)
@@ -226,6 +231,27 @@ $(SUBJECT)/uvmaps_truth/%/manifest.json: $(SUBJECT)/meshes_truth/%/manifest.json
 $(SUBJECT)/renders_truth/%/manifest.json: $(SUBJECT)/meshes_truth/%/manifest.json \
 		$(SUBJECT)/uvmaps_truth/%/manifest.json $(RELIGHT_MODEL) $(CHARACTER) $(CAPTURE)
 	$(call RELIGHT_OF,$(SUBJECT)/meshes_truth/$*,$(SUBJECT)/uvmaps_truth/$*,$*,$(SUBJECT)/renders_truth/$*)
+
+# make relight-ablation (issue 18): the top-r rays r = 2 / 8 / 32 and SpecularNet without
+# cross-attention, each trained like the default model and scored on SEQ's held-out cameras
+RELIGHT_ABLATION := rays2 rays8 rays32 noattention
+ABLATION_SET_rays2 := --set net.rays=2
+ABLATION_SET_rays8 := --set net.rays=8
+ABLATION_SET_rays32 := --set net.rays=32
+ABLATION_SET_noattention := --set net.attention=false
+
+$(SUBJECT)/models/relight_%/manifest.json: $(RELIGHT_TRAIN_INPUTS)
+	$(call TRAIN_RELIGHT,$(ABLATION_SET_$*),$(SUBJECT)/models/relight_$*)
+
+$(SUBJECT)/renders_ablation/%/manifest.json: $(SUBJECT)/models/relight_%/manifest.json \
+		$(SUBJECT)/meshes/$(SEQ)/manifest.json $(SUBJECT)/uvmaps/$(SEQ)/manifest.json
+	$(call RELIGHT_OF,$(SUBJECT)/meshes/$(SEQ),$(SUBJECT)/uvmaps/$(SEQ),$(SEQ),$(SUBJECT)/renders_ablation/$*,\
+		$(SUBJECT)/models/relight_$*)
+
+.PHONY: relight-ablation
+relight-ablation: $(SUBJECT)/renders/$(SEQ)/manifest.json \
+		$(foreach v,$(RELIGHT_ABLATION),$(SUBJECT)/renders_ablation/$(v)/manifest.json)
+	@$(BIN)/python -m egorelight_cli.report.table --keys psnr,ssim,diffuse_only_psnr,diffuse_only_ssim,lambert_psnr $^
 
 # both rows for SEQ; the truth row only where the capture has ground truth (known after synth runs)
 relight-rows: $(SUBJECT)/renders_studio/$(SEQ)/manifest.json

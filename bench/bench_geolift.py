@@ -1,7 +1,7 @@
 """Benchmark: GeoLift per frame -- the lighting features and the network (``stages/geolift*.py``).
 
 On the default character at rest, per UV resolution (64: cpu preset, 128): the coarse UV normal
-map, texel visibility to 100 lights (cpu preset dome) by Embree, rho + chi, the top-32 ray
+map and tangent frames, texel visibility to 100 lights (cpu preset dome) by Embree, rho + chi, the top-32 ray
 selection with psi for one camera, and GeoLiftingNet's forward pass (cpu preset width). Seconds
 per frame, best of a few runs.
 """
@@ -26,7 +26,7 @@ from egorelight_cli.render.uv_features import (
     texel_surface,
     texel_visibility,
 )
-from egorelight_cli.stages.geolift import coarse_normal_maps, stacked_input
+from egorelight_cli.stages.geolift import coarse_maps, stacked_input
 from timing import best_time
 
 
@@ -48,7 +48,8 @@ def run(repeats: int = 3) -> dict:
         transfer = light_transfer(surface.points, surface.normals, stage, visibility)
         key = f"uv{resolution}"
         results[f"{key}_texels"] = int(raster.coverage.sum())
-        results[f"{key}_normal_map_s"] = round(_best(lambda: coarse_normal_maps(raster, vertices[None], faces), repeats), 4)
+        results[f"{key}_normal_map_s"] = round(_best(lambda: coarse_maps(raster, vertices[None], faces,
+                                                                         character.face_uvs), repeats), 4)
         results[f"{key}_visibility_s"] = round(_best(lambda: texel_visibility(vertices, faces, surface, stage), repeats), 4)
         results[f"{key}_rho_chi_s"] = round(_best(lambda: (shadow_map(light_transfer(surface.points, surface.normals,
                                                                                     stage, visibility)),
@@ -59,11 +60,12 @@ def run(repeats: int = 3) -> dict:
             return ray_encoding(surface.points, surface.normals, transfer, stage, intensities, camera_centre, index, valid)
 
         results[f"{key}_top32_psi_s"] = round(_best(rays, repeats), 4)
-        maps = coarse_normal_maps(raster, vertices[None], faces)
-        model = GeoLiftNet(base_channels=16, levels=3).eval()
-        batch = torch.from_numpy(stacked_input(maps, 0))[None]
+        coarse = coarse_maps(raster, vertices[None], faces, character.face_uvs)
+        model = GeoLiftNet(base_channels=16, levels=3, uv_resolution=resolution).eval()
+        batch = torch.from_numpy(stacked_input(coarse.normals, 0))[None]
+        frames = torch.from_numpy(coarse.frames[:1])
         with torch.no_grad():
-            results[f"{key}_network_s"] = round(_best(lambda: model(batch), repeats), 4)
+            results[f"{key}_network_s"] = round(_best(lambda: model(batch, frames), repeats), 4)
     return results
 
 

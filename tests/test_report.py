@@ -264,3 +264,17 @@ def test_runtime_next_to_the_papers():
     assert (ours, paper) == (200.0, 100.19) and "loading included" in what
     assert runtime_row("relight", {"timing": {"wall_s": 10.0}, "metrics": {}}) is None
     assert runtime_row("character", {"timing": {"wall_s": 1.0}}) is None
+
+
+def test_metric_table_lists_each_artifact_and_key(tmp_path):
+    from egorelight_cli.report.table import metric_table
+
+    paths = []
+    for name, metrics in (("rays2", {"psnr": 15.234, "ssim": 24.9}), ("noattention", {"psnr": 14.0, "ssim": None})):
+        (tmp_path / name).mkdir()
+        paths.append(tmp_path / name / "manifest.json")
+        paths[-1].write_text(json.dumps({"metrics": metrics}))
+    lines = metric_table(paths, ["psnr", "ssim", "fid"]).splitlines()
+    assert lines[0].split() == ["artifact", "psnr", "ssim", "fid"]
+    assert lines[1].split() == ["rays2", "15.23", "24.90", "-"]
+    assert lines[2].split() == ["noattention", "14.00", "-", "-"]

@@ -35,6 +35,10 @@ class DiffuseNet(nn.Module):
     def __init__(self, base_channels: int = 32, levels: int = 4):
         super().__init__()
         self.unet = UNet(DIFFUSE_IN, DIFFUSE_OUT, base_channels, levels)
+        # the head starts at zero: no offset, identity rotation, the base scale and opacity, and a
+        # diffuse gain of exactly 1 -- an untrained network renders the Lambert baseline
+        nn.init.zeros_(self.unet.head.weight)
+        nn.init.zeros_(self.unet.head.bias)
 
     def forward(self, features: torch.Tensor) -> torch.Tensor:
         return self.unet(features)

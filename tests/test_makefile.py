@@ -1,0 +1,38 @@
+"""The Makefile's DAG, checked with ``make -n`` (nothing runs)."""
+
+from __future__ import annotations
+
+import subprocess
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _dry_run(tmp_path, *targets) -> str:
+    stamp = ROOT / ".venv" / ".installed-stamp"
+    result = subprocess.run(["make", "-n", "-o", str(stamp), f"SUBJECT={tmp_path}", *targets], cwd=ROOT,
+                            capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
+    return result.stdout
+
+
+def test_the_demo_relights_test_on_tracked_studio_and_true_keypoint_meshes(tmp_path):
+    out = _dry_run(tmp_path, "subject")
+    assert f"--out {tmp_path}/renders/test" in out
+    assert f"--out {tmp_path}/renders_studio/test" in out
+    assert f"--meshes {tmp_path}/meshes_student/test --uvmaps {tmp_path}/uvmaps_student/test" in out
+    # the truth row is made only where the capture has ground truth (known after synth ran)
+    assert f"groundtruth/test/keypoints.npz ]; then" in out and "renders_truth/test/manifest.json" in out
+    truth = _dry_run(tmp_path, f"{tmp_path}/renders_truth/test/manifest.json")
+    assert f"ik --in {tmp_path}/capture/groundtruth/test/keypoints.npz" in truth
+    assert f"animate --no-depth --motion {tmp_path}/motion_truth/test" in truth
+
+
+def test_relight_ablation_trains_each_variant_and_prints_one_table(tmp_path):
+    out = _dry_run(tmp_path, "relight-ablation")
+    for option, name in (("net.rays=2", "rays2"), ("net.rays=8", "rays8"), ("net.rays=32", "rays32"),
+                         ("net.attention=false", "noattention")):
+        assert f"--set {option} " in out and f"--out {tmp_path}/models/relight_{name}" in out
+        assert f"relight_{name} --character" in out.replace("  ", " ")
+    table = next(line for line in out.splitlines() if "egorelight_cli.report.table" in line)
+    assert table.count("manifest.json") == 5
