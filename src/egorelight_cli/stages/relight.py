@@ -11,9 +11,10 @@ under the frame's lighting) and the tracked mesh's texel points feed
   camera, at the attention level's resolution) -> the specular colour.
 
 The Gaussians are rendered (``render/gaussians.py``) with ``c_diff + c_spec`` and, as a pass,
-``c_diff`` alone. Loss (paper weights): ``L1 + 10 (1 - SSIM) + L_reg + L1(diffuse pass)``; the
-paper's ``80 ID-MRF`` needs VGG weights, which cannot be downloaded here, so it is left out and
-the manifest says so. After half the steps, with probability 0.4, the light (``chi`` and the
+``c_diff`` alone. Loss: ``w_l1 L1 + w_ssim (1 - SSIM) + w_reg L_reg + w_diffuse L1(diffuse pass)``,
+the paper's weights 1 / 10 / 1 / 1 (``LOSS_WEIGHTS``) or the config's (``train.weights``,
+``train.loss_space``); the paper's ``80 ID-MRF`` needs VGG weights, which cannot be downloaded
+here, so it is left out and the manifest says so. After half the steps, with probability 0.4, the light (``chi`` and the
 rays' intensities) and the target image are scaled by one factor from U[0, 1] (the paper's
 intensity augmentation, exact because light transport is linear).
 """

@@ -321,10 +321,12 @@ class RelightCommands:
                      "train_frames": frames[:-held].tolist(), "val_frames": frames[-held:].tolist()}
             write_model(writer.workdir, ModelPayload(rl.MODEL_STAGE, model.architecture(), model.state_dict(), extra,
                                                      curve), curve_title="relight training loss")
+            w = {k: float(t.weights[k]) for k in rl.LOSS_WEIGHTS}
             writer.metrics.update({"training_views": len(train_views), "validation_views": len(val_views),
                                    "loss_first": curve[0]["loss"], "loss_last": curve[-1]["loss"],
                                    "id_mrf": "not used: needs VGG weights (cannot be downloaded); loss is "
-                                             "L1 + 10 (1 - SSIM) + L_reg + L1(diffuse)"})
+                                             f"{w['l1']:g} L1 + {w['ssim']:g} (1 - SSIM) + {w['reg']:g} L_reg + "
+                                             f"{w['diffuse']:g} L1(diffuse), in {t.loss_space} space"})
 
         result = self.run.produce(out, "model", write, inputs=inputs)
         checkpoint.unlink(missing_ok=True)
