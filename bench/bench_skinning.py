@@ -22,7 +22,7 @@ from egorelight_cli.geometry.embedded_graph import (
     embedded_deformation,
     pose_through_graph,
 )
-from egorelight_cli.geometry.rotations import rigid_inverse
+from egorelight_cli.geometry.rotations import invert_rigid
 from egorelight_cli.geometry.skeleton import bone_transforms, forward_kinematics
 from egorelight_cli.geometry.skinning import (
     dual_quaternion_skinning,
@@ -109,7 +109,7 @@ def run() -> dict:
         bone_T = bone_transforms(theta, character)
     else:
         fk_s = _time(lambda: forward_kinematics(theta, skeleton))
-        G_rest_inv = rigid_inverse(forward_kinematics(torch.as_tensor(rest, dtype=dtype), skeleton))
+        G_rest_inv = invert_rigid(forward_kinematics(torch.as_tensor(rest, dtype=dtype), skeleton))
         bone_T = forward_kinematics(theta, skeleton) @ G_rest_inv
     results["fk_frames_per_s"] = round(FRAMES / fk_s, 1)
 

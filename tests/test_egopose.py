@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from egorelight_cli.geometry.cameras import project
-from egorelight_cli.geometry.rotations import rigid_inverse
+from egorelight_cli.geometry.rotations import invert_rigid
 from egorelight_cli.nn.egopose_net import (EgoPoseNet, RigGeometry, heading_frame, load_backbone_weights,
                                            transform, unproject_keypoints, windows)
 from egorelight_cli.structures.keypoints import NUM_KEYPOINTS
@@ -90,7 +90,7 @@ def test_heading_frame_is_levelled_and_ignores_head_pitch():
     assert torch.det(R) == pytest.approx(1.0)
     torch.testing.assert_close(R[:, 1], torch.tensor([0.0, 1.0, 0.0], dtype=R.dtype))
     torch.testing.assert_close(H[0, :3, 3], torch.tensor(T[:3, 3]))
-    torch.testing.assert_close(rigid_inverse(H[0]) @ H[0], torch.eye(4, dtype=R.dtype))
+    torch.testing.assert_close(invert_rigid(H[0]) @ H[0], torch.eye(4, dtype=R.dtype))
 
 
 def test_windows_are_causal_and_skip_unusable_frames():
@@ -167,7 +167,7 @@ def test_training_beats_the_mean_pose_on_the_training_frames(trained, tiny_captu
     pred = predict(model.net, frames, rig_geometry(capture, oracle_calibration), 0.08).keypoints.xyz
     # the mean pose of the training frames, placed in each frame's heading frame (computed here)
     H = heading_frame(torch.tensor(frames.T_world_from_hmd))
-    local = transform(rigid_inverse(H), torch.tensor(truth, dtype=torch.float64))
+    local = transform(invert_rigid(H), torch.tensor(truth, dtype=torch.float64))
     mean_pose = transform(H, local.mean(0, keepdim=True).expand_as(local)).numpy()
     ours, baseline = mpjpe_cm(pred, truth), mpjpe_cm(mean_pose, truth)
     assert ours < 0.6 * baseline, (ours, baseline)

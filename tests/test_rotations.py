@@ -130,10 +130,15 @@ def test_dual_quaternion_roundtrip(dtype):
     torch.testing.assert_close(rot.dual_quaternion_transform_points(real, dual, p), rot.transform_points(T, p), **_tol(dtype))
 
 
-def test_rigid_inverse():
+def test_invert_rigid():
     R = torch.as_tensor(Rotation.random(5, random_state=11).as_matrix())
     T = rot.make_transform(R, torch.randn(5, 3, dtype=torch.float64))
-    torch.testing.assert_close(rot.rigid_inverse(T) @ T, torch.eye(4, dtype=torch.float64).expand(5, 4, 4))
+    torch.testing.assert_close(rot.invert_rigid(T) @ T, torch.eye(4, dtype=torch.float64).expand(5, 4, 4))
+    # numpy in, numpy out: the same numbers, and the same as a general matrix inverse
+    inverse = rot.invert_rigid(T.numpy())
+    assert isinstance(inverse, np.ndarray) and inverse.dtype == np.float64
+    np.testing.assert_allclose(inverse, rot.invert_rigid(T).numpy(), atol=1e-12)
+    np.testing.assert_allclose(inverse, np.linalg.inv(T.numpy()), atol=1e-10)
 
 
 def test_make_transform_broadcasts():

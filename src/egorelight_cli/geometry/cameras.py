@@ -36,6 +36,7 @@ import torch
 
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.geometry import rotations
+from egorelight_cli.geometry.rotations import invert_rigid
 
 CAMERA_MODELS = ("pinhole", "fisheye")
 _DIST_SIZES = {"pinhole": 5, "fisheye": 4}
@@ -159,21 +160,8 @@ def check_model(model: str) -> None:
 
 
 # --------------------------------------------------------------------------------------------
-# Rigid transforms
+# Placement
 # --------------------------------------------------------------------------------------------
-
-
-def invert_rigid(T: np.ndarray) -> np.ndarray:
-    """Inverse of rigid transforms (...,4,4) (rotation + translation), exact transpose form."""
-    T = np.asarray(T, dtype=np.float64)
-    R = T[..., :3, :3]
-    t = T[..., :3, 3]
-    out = np.zeros_like(T)
-    R_inv = np.swapaxes(R, -1, -2)
-    out[..., :3, :3] = R_inv
-    out[..., :3, 3] = -np.einsum("...ij,...j->...i", R_inv, t)
-    out[..., 3, 3] = 1.0
-    return out
 
 
 def look_at(eye, target, up=(0.0, 1.0, 0.0)) -> np.ndarray:

@@ -16,6 +16,7 @@ including at the zero rotation.
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 _SMALL_ANGLE_SQ = 1e-8  # below this squared angle Rodrigues uses its Taylor series
@@ -250,16 +251,25 @@ def make_transform(R: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
     return torch.cat([top, bottom], -2)
 
 
-def rigid_inverse(T: torch.Tensor) -> torch.Tensor:
-    """Inverse of a rigid transform, ``[[R^T, -R^T t], [0, 1]]``.
+def invert_rigid(T):
+    """Inverse of rigid transforms, ``[[R^T, -R^T t], [0, 1]]`` (exact transpose form).
 
     Args:
-        T: (...,4,4) with an orthonormal rotation block.
+        T: (...,4,4) with an orthonormal rotation block: a torch tensor (differentiable, same
+            dtype and device) or anything numpy reads (float64).
     Returns:
-        (...,4,4).
+        (...,4,4) of the same kind.
     """
-    Rt = T[..., :3, :3].transpose(-1, -2)
-    return make_transform(Rt, -(Rt @ T[..., :3, 3:])[..., 0])
+    if isinstance(T, torch.Tensor):
+        Rt = T[..., :3, :3].transpose(-1, -2)
+        return make_transform(Rt, -(Rt @ T[..., :3, 3:])[..., 0])
+    T = np.asarray(T, dtype=np.float64)
+    out = np.zeros_like(T)
+    Rt = np.swapaxes(T[..., :3, :3], -1, -2)
+    out[..., :3, :3] = Rt
+    out[..., :3, 3] = -np.einsum("...ij,...j->...i", Rt, T[..., :3, 3])
+    out[..., 3, 3] = 1.0
+    return out
 
 
 def transform_points(T: torch.Tensor, points: torch.Tensor) -> torch.Tensor:

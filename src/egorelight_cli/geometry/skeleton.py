@@ -21,7 +21,7 @@ from egorelight_cli.errors import EgorelightError
 from egorelight_cli.geometry.rotations import (
     axis_angle_rotation,
     make_transform,
-    rigid_inverse,
+    invert_rigid,
     transform_points,
 )
 from egorelight_cli.structures.character import Character
@@ -173,7 +173,7 @@ def rest_bone_inverse(character: Character, dtype: torch.dtype, device: torch.de
     def build() -> torch.Tensor:
         rest = torch.as_tensor(character.rest_theta, dtype=torch.float64)
         G = forward_kinematics(rest, character.skeleton)[torch.as_tensor(character.skin_bone_joints)]
-        return rigid_inverse(G).to(dtype=dtype, device=device)
+        return invert_rigid(G).to(dtype=dtype, device=device)
 
     return _cached(character, ("rest_bone_inverse", dtype, device), build)
 

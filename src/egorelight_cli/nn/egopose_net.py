@@ -39,7 +39,7 @@ import torch
 from torch import nn
 
 from egorelight_cli.geometry.cameras import project, unproject_to_rays
-from egorelight_cli.geometry.rotations import rigid_inverse, transform_points
+from egorelight_cli.geometry.rotations import invert_rigid, transform_points
 from egorelight_cli.nn.unet import UNet, group_norm
 
 WORLD_UP = (0.0, 1.0, 0.0)
@@ -249,7 +249,7 @@ class EgoPoseNet(nn.Module):
             per joint with the pose prior, ``a * x + (1 - a) * prior`` in the heading frame.
         """
         T_world_from_heading = heading_frame(T_world_from_hmd)
-        local = transform(rigid_inverse(T_world_from_heading)[:, None], fused_world)
+        local = transform(invert_rigid(T_world_from_heading)[:, None], fused_world)
         blend = self.prior_blend[:, None]
         refined = blend * self.temporal(local) + (1 - blend) * self.prior_heading
         return transform(T_world_from_heading, refined)

@@ -44,7 +44,7 @@ from egorelight_cli.config import Config
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.geometry.cameras import project
 from egorelight_cli.geometry.mpjpe import mpjpe_cm
-from egorelight_cli.geometry.rotations import rigid_inverse
+from egorelight_cli.geometry.rotations import invert_rigid
 from egorelight_cli.structures.calibration import Calibration, HeadPoses
 from egorelight_cli.io.capture import Capture, SequenceInfo
 from egorelight_cli.structures.keypoints import Keypoints
@@ -254,7 +254,7 @@ def make_targets(frames: EgoFrames, mocap: Keypoints, rig: RigGeometry) -> Targe
         raise EgorelightError("mocap lacks some training frames")
     world = torch.tensor(np.nan_to_num(mocap.xyz[rows]), dtype=torch.float32)
     conf = torch.tensor(mocap.confidence[rows], dtype=torch.float32)
-    T_hmd_from_world = rigid_inverse(torch.tensor(frames.T_world_from_hmd, dtype=torch.float32))
+    T_hmd_from_world = invert_rigid(torch.tensor(frames.T_world_from_hmd, dtype=torch.float32))
     hmd = transform(T_hmd_from_world, world)
     cam = transform(rig.T_cam_from_hmd[None], hmd[:, None].expand(-1, rig.K.shape[0], -1, -1))
     pixels, inside = project_keypoints(cam, rig)
@@ -389,7 +389,7 @@ def to_heading(world: torch.Tensor, T_world_from_hmd: np.ndarray, confidence: to
     """(J,3) confidence-weighted mean over frames of (N,J,3) world keypoints, each frame moved
     into its heading frame."""
     T_heading = heading_frame(torch.tensor(T_world_from_hmd, dtype=torch.float32))
-    local = transform(rigid_inverse(T_heading), world.to(torch.float32))
+    local = transform(invert_rigid(T_heading), world.to(torch.float32))
     w = (torch.ones(local.shape[:2]) if confidence is None else confidence)[..., None]
     return ((local * w).sum(0) / w.sum(0).clamp_min(1e-6)).numpy()
 
@@ -397,7 +397,7 @@ def to_heading(world: torch.Tensor, T_world_from_hmd: np.ndarray, confidence: to
 def fit_prior_blend(pred: np.ndarray, truth: np.ndarray, prior: np.ndarray, T_world_from_hmd: np.ndarray) -> np.ndarray:
     """(J,) least-squares blend ``a`` in [0,1] of ``a * pred + (1 - a) * prior`` against ``truth``
     (pred, truth (N,J,3) world; prior (J,3) heading frame) on held-out frames."""
-    T_from_world = rigid_inverse(heading_frame(torch.tensor(T_world_from_hmd, dtype=torch.float32)))
+    T_from_world = invert_rigid(heading_frame(torch.tensor(T_world_from_hmd, dtype=torch.float32)))
     p = transform(T_from_world, torch.tensor(pred, dtype=torch.float32)).numpy() - prior
     t = transform(T_from_world, torch.tensor(truth, dtype=torch.float32)).numpy() - prior
     num = np.nansum((p * t).sum(-1), axis=0)
