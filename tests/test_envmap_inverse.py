@@ -103,7 +103,8 @@ def test_envmap_inverse_rendering_on_the_tiny_capture(tiny_capture, oracle_calib
     assert result.returncode == 0, result.stderr
     manifest = json.loads((out / "manifest.json").read_text())
     m = manifest["metrics"]
-    assert m["row"] == "fitted" and set(m["rows"]) == {"ldr_panorama_only", "fitted", "no_flow", "no_part_masks"}
+    assert m["row"] == "fitted" and set(m["rows"]) == {"ldr_panorama_only", "fitted", "no_flow", "no_part_masks",
+                                                       "no_panorama"}
     for row in m["rows"].values():
         for key in ("light_relative_error", "light_cosine", "dominant_light_direction_error_deg", "log_l1_observed",
                     "log_l1_unobserved", "relit_psnr"):
@@ -115,6 +116,9 @@ def test_envmap_inverse_rendering_on_the_tiny_capture(tiny_capture, oracle_calib
     assert model["row"] == "fitted" and model["fitted"] is True
     assert not np.allclose(model["A"], np.eye(3, 6)) and model["gamma"] != 1.0
     assert np.allclose(model["rows"]["ldr_panorama_only"]["A"], np.eye(3, 6))
+    assert model["rows"]["no_panorama"]["model"].startswith("free") and "A" not in model["rows"]["no_panorama"]
+    curves = json.loads((out / "curve.json").read_text())  # the free map was fitted too: its image loss fell
+    assert curves["no_panorama"][-1]["image"] < curves["no_panorama"][0]["image"]
     for role in ("down_left", "down_right"):
         sync = model["colour_sync"][role]
         assert np.asarray(sync["matrix"]).shape == (3, 3) and sync["pixels"] > 30
@@ -160,3 +164,20 @@ def test_envmap_inverse_bad_inputs_are_one_line_errors(tiny_capture, oracle_cali
     assert message in result.stderr and "Traceback" not in result.stderr
     assert len(result.stderr.strip().splitlines()) == 1
     assert not out.exists()
+
+
+def test_the_free_map_of_the_no_panorama_row_is_smooth_non_negative_and_wraps():
+    from egorelight_cli.stages.envmap_inverse import FREE_MAP_INIT, FreeEnvmap
+
+    free = FreeEnvmap(4)
+    panorama = torch.rand(16, 32, 3, dtype=torch.float64)
+    np.testing.assert_allclose(free(panorama).detach().numpy(), FREE_MAP_INIT)  # ignores the panorama
+    with torch.no_grad():
+        free.logits[:, :, 0] = 4.0  # the first longitude cell bright
+    out = free(panorama).detach().numpy()
+    assert (out > 0).all()
+    # bilinear with wrap-around: the last columns (next to longitude 0) are lifted, the middle is not
+    assert out[:, -1].mean() > out[:, 16].mean() + 0.5 and np.allclose(out[:, 16], FREE_MAP_INIT)
+    loss = free(panorama)[:, :4].sum()
+    loss.backward()
+    assert free.logits.grad[:, :, 0].abs().sum() > 0 and free.logits.grad[:, :, 2].abs().sum() == 0

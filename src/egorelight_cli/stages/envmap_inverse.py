@@ -45,7 +45,9 @@ of the relightable avatar into the down-facing HMD cameras (paper Eqs. ``inv-ren
 
 Adam on ``A`` (init ``[I | 0]``) and ``log gamma`` (init 0), ``steps`` steps (paper 1000), a
 random ``views_per_step`` subset of the views per step. Ablation rows (:data:`ROWS`) re-run the
-fit without the flow or without the part masks.
+fit without the flow or without the part masks, and without the panorama: a free low-resolution
+map (:class:`FreeEnvmap`, ``free_map_height`` rows) fitted by the same objective from the ego
+images alone, so the panorama's contribution is measured.
 """
 
 from __future__ import annotations
@@ -70,8 +72,40 @@ from egorelight_cli.stages.relight_commands import RelightData
 #: Body parts of the loss: name -> the character's segmentation names in it.
 PARTS = {"upper_body": ("upper_clothes",), "lower_body": ("pants",), "arms": ("left_arm", "right_arm"),
          "legs": ("left_leg", "right_leg"), "shoes": ("left_shoe", "right_shoe")}
-#: Rows of the fit: name -> (use the flow, use the part masks).
-ROWS = {"fitted": (True, True), "no_flow": (False, True), "no_part_masks": (True, False)}
+#: Rows of the fit: name -> (use the flow, use the part masks); ``no_panorama`` fits a :class:`FreeEnvmap`.
+ROWS = {"fitted": (True, True), "no_flow": (False, True), "no_part_masks": (True, False), "no_panorama": (True, True)}
+FREE_MAP_INIT = 0.5  # the free map's start: a uniform grey of the LDR panorama's mid level
+
+
+class FreeEnvmap(torch.nn.Module):
+    """The ``no_panorama`` row: a free (h,2h,3) map ``softplus(x)`` (non-negative), upsampled
+    bilinearly (with wrap-around in longitude) to the panorama's size; it ignores the panorama.
+    Same interface as :class:`~egorelight_cli.nn.colour_model.RootPolynomialColour`."""
+
+    def __init__(self, height: int, init: float = FREE_MAP_INIT):
+        super().__init__()
+        if height < 1:
+            raise EgorelightError(f"inverse.free_map_height must be >= 1, got {height}")
+        start = float(np.log(np.expm1(init)))  # softplus^-1
+        self.logits = torch.nn.Parameter(torch.full((3, height, 2 * height), start, dtype=torch.float64))
+
+    def forward(self, panorama: torch.Tensor) -> torch.Tensor:
+        import torch.nn.functional as F
+
+        height, width = panorama.shape[0], panorama.shape[1]
+        padded = torch.cat([self.logits[..., -1:], self.logits, self.logits[..., :1]], dim=-1)  # wrap longitude
+        scale = width / self.logits.shape[-1]
+        up = F.interpolate(padded[None], size=(height, int(round(padded.shape[-1] * scale))), mode="bilinear",
+                           align_corners=False)[0]
+        border = int(round(scale))
+        return F.softplus(up[..., border:border + width]).permute(1, 2, 0).to(panorama.dtype)
+
+    def apply_numpy(self, panorama: np.ndarray) -> np.ndarray:
+        with torch.no_grad():
+            return self(torch.from_numpy(np.asarray(panorama, np.float64))).numpy().astype(np.float32)
+
+    def to_json(self, **extra) -> dict:
+        return {"model": "free low-resolution map (no panorama)", "height": int(self.logits.shape[1]), **extra}
 
 
 @dataclass(frozen=True)
@@ -94,6 +128,7 @@ class InverseSettings:
     sync_frames: int
     sync_patterns: tuple[str, ...]
     rows: tuple[str, ...]
+    free_map_height: int = 8
 
     @classmethod
     def from_config(cls, cfg) -> InverseSettings:
@@ -103,12 +138,14 @@ class InverseSettings:
         settings = cls(tuple(c.roles), int(c.frames), int(c.steps), float(c.lr), int(c.views_per_step),
                        float(c.reg_weight), reg_max, str(c.flow.method), c.flow.raft_weights or None,
                        float(c.flow.tolerance), float(c.flow.max), float(c.flow.min_consistent), int(c.mask_erode_px), int(c.sync.frames),
-                       tuple(c.sync.patterns), rows)
+                       tuple(c.sync.patterns), rows, int(c.free_map_height))
         of.flow_method(settings.flow, settings.raft_weights)  # an unknown method fails here
         if not settings.roles or settings.frames < 1 or settings.steps < 1 or settings.views_per_step < 1:
             raise EgorelightError("inverse.roles must be non-empty and inverse.frames, steps, views_per_step >= 1")
-        if settings.lr <= 0 or (reg_max is not None and reg_max <= 0) or settings.sync_frames < 1:
-            raise EgorelightError("inverse.lr and inverse.reg_max must be positive, inverse.sync.frames >= 1")
+        if settings.lr <= 0 or (reg_max is not None and reg_max <= 0) or settings.sync_frames < 1 \
+                or settings.free_map_height < 1:
+            raise EgorelightError("inverse.lr and inverse.reg_max must be positive, inverse.sync.frames and "
+                                  "inverse.free_map_height >= 1")
         unknown = [r for r in rows if r not in ROWS]
         if unknown or "fitted" not in rows:
             raise EgorelightError(f"inverse.rows must hold 'fitted' and only {', '.join(ROWS)} (got {', '.join(rows)})")
@@ -277,8 +314,10 @@ class Fit:
 
 def fit_colour_model(panorama: torch.Tensor, pooling: EnvmapPooling, views: Sequence,
                      render: Callable[[object, torch.Tensor], torch.Tensor], steps: int, lr: float,
-                     views_per_step: int, reg_weight: float, reg_max: float, seed: int = 0) -> Fit:
-    """Adam on ``A`` and ``gamma`` of a :class:`RootPolynomialColour` (from the identity).
+                     views_per_step: int, reg_weight: float, reg_max: float, seed: int = 0,
+                     colour: torch.nn.Module | None = None) -> Fit:
+    """Adam on ``A`` and ``gamma`` of a :class:`RootPolynomialColour` (from the identity), or on
+    the parameters of ``colour`` (any module panorama -> map, e.g. :class:`FreeEnvmap`).
 
     Args:
         panorama: (H,2H,3) ``E_l`` (float64 tensor).
@@ -291,7 +330,7 @@ def fit_colour_model(panorama: torch.Tensor, pooling: EnvmapPooling, views: Sequ
     usable = [v for v in views if bool(v.masks.any())]
     if not usable:
         raise EgorelightError("no down-facing view has an observed body pixel: nothing to fit the colour model to")
-    colour = RootPolynomialColour()
+    colour = RootPolynomialColour() if colour is None else colour
     optimiser = torch.optim.Adam(colour.parameters(), lr=lr)
     rng = np.random.default_rng(seed)
     curve = []
@@ -412,8 +451,9 @@ def inverse_render(model: rl.RelightModel, wild: EgoAvatarData, studio: EgoAvata
             copy = EgoView(view.frame_id, view.role, view.camera, view.ego, view.unclipped)
             observe(copy, *first[id(view)], use_flow and method != "none", use_parts, settings, method)
             views.append(copy)
+        free = FreeEnvmap(settings.free_map_height) if row == "no_panorama" else None
         fits[row] = fit_colour_model(E_l, pooling, views, synced, settings.steps, settings.lr,
-                                     settings.views_per_step, settings.reg_weight, reg_max, seed)
+                                     settings.views_per_step, settings.reg_weight, reg_max, seed, free)
         if row == "fitted":
             main_views = views
     return InverseResult(fits, sync, main_views, frames, method, note, reg_max, np.asarray(panorama))
