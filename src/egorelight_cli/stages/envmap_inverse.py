@@ -58,6 +58,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.geometry.cameras import Camera
@@ -72,8 +73,10 @@ from egorelight_cli.stages.relight_commands import RelightData
 #: Body parts of the loss: name -> the character's segmentation names in it.
 PARTS = {"upper_body": ("upper_clothes",), "lower_body": ("pants",), "arms": ("left_arm", "right_arm"),
          "legs": ("left_leg", "right_leg"), "shoes": ("left_shoe", "right_shoe")}
-#: Rows of the fit: name -> (use the flow, use the part masks); ``no_panorama`` fits a :class:`FreeEnvmap`.
-ROWS = {"fitted": (True, True), "no_flow": (False, True), "no_part_masks": (True, False), "no_panorama": (True, True)}
+#: Rows of the fit: name -> (use the flow, use the part masks, fit a :class:`FreeEnvmap` instead of the
+#: colour model of the panorama).
+ROWS = {"fitted": (True, True, False), "no_flow": (False, True, False), "no_part_masks": (True, False, False),
+        "no_panorama": (True, True, True)}
 FREE_MAP_INIT = 0.5  # the free map's start: a uniform grey of the LDR panorama's mid level
 
 
@@ -90,8 +93,6 @@ class FreeEnvmap(torch.nn.Module):
         self.logits = torch.nn.Parameter(torch.full((3, height, 2 * height), start, dtype=torch.float64))
 
     def forward(self, panorama: torch.Tensor) -> torch.Tensor:
-        import torch.nn.functional as F
-
         height, width = panorama.shape[0], panorama.shape[1]
         padded = torch.cat([self.logits[..., -1:], self.logits, self.logits[..., :1]], dim=-1)  # wrap longitude
         scale = width / self.logits.shape[-1]
@@ -445,15 +446,15 @@ def inverse_render(model: rl.RelightModel, wild: EgoAvatarData, studio: EgoAvata
 
     fits, main_views = {}, []
     for row in settings.rows:
-        use_flow, use_parts = ROWS[row]
+        use_flow, use_parts, free_map = ROWS[row]
         views = []
         for view in base:
             copy = EgoView(view.frame_id, view.role, view.camera, view.ego, view.unclipped)
             observe(copy, *first[id(view)], use_flow and method != "none", use_parts, settings, method)
             views.append(copy)
-        free = FreeEnvmap(settings.free_map_height) if row == "no_panorama" else None
         fits[row] = fit_colour_model(E_l, pooling, views, synced, settings.steps, settings.lr,
-                                     settings.views_per_step, settings.reg_weight, reg_max, seed, free)
+                                     settings.views_per_step, settings.reg_weight, reg_max, seed,
+                                     FreeEnvmap(settings.free_map_height) if free_map else None)
         if row == "fitted":
             main_views = views
     return InverseResult(fits, sync, main_views, frames, method, note, reg_max, np.asarray(panorama))

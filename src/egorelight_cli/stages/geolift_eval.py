@@ -35,6 +35,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 from scipy import ndimage
+from trimesh.triangles import points_to_barycentric
 
 from egorelight_cli.geometry.pointcloud_ops import SurfaceDistance
 from egorelight_cli.io.capture import Capture
@@ -53,13 +54,6 @@ def _resample(values: np.ndarray, coverage: np.ndarray, shape: tuple[int, int]) 
     if full.shape[:2] == tuple(shape):
         return full
     return cv2.resize(full, (shape[1], shape[0]), interpolation=cv2.INTER_AREA).reshape(tuple(shape) + (-1,))
-
-
-def _barycentrics(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """(N,3) barycentric coordinates of points (N,3) on their triangles (N,3,3)."""
-    from trimesh.triangles import points_to_barycentric
-
-    return points_to_barycentric(triangles, points)
 
 
 class GeoLiftTruth:
@@ -125,7 +119,7 @@ class GeoLiftTruth:
         vertices = np.asarray(self.surfaces["vertices"][k], np.float64)
         faces = np.asarray(self.surfaces["faces"], np.int64)
         closest, face, distance = SurfaceDistance(vertices, faces).closest(points)
-        weights = _barycentrics(closest, vertices[faces[face]])
+        weights = points_to_barycentric(vertices[faces[face]], closest)
         uv = np.einsum("nk,nkd->nd", weights, np.asarray(self.surfaces["face_uvs"], np.float64)[face])
         height, width = self.coverage.shape
         xy = np.rint(uv_to_texel_coords(uv, (height, width))).astype(np.int64)

@@ -17,7 +17,8 @@ import torch
 from egorelight_cli.render.gaussians import GaussianRender
 from egorelight_cli.render.image_metrics import psnr, ssim, tonemap_for_metrics
 
-ROWS = {"": "colour", "diffuse_only_": "diffuse", "lambert_": "lambert", "baked_": "baked"}
+#: metric prefix -> the tone-mapped image it scores (``render``: the model's colour, else a render pass)
+ROWS = {"": "render", "diffuse_only_": "diffuse", "lambert_": "lambert", "baked_": "baked"}
 
 
 class RelightScores:
@@ -35,23 +36,28 @@ class RelightScores:
         return out
 
 
+def tonemapped(render: GaussianRender, names) -> dict[str, torch.Tensor]:
+    """The render's colour (``render``) or passes ``names`` on the metric tone mapping, (H,W,3) in [0,1]."""
+    return {name: tonemap_for_metrics(render.colour if name == "render" else render.passes[name]) for name in names}
+
+
+def _uint8(images: dict[str, torch.Tensor]) -> dict[str, np.ndarray]:
+    return {k: (v.clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8) for k, v in images.items()}
+
+
 def display_images(render: GaussianRender) -> dict:
     """The render and its baseline passes on the metric tone mapping, uint8 (H,W,3) by name."""
-    images = {"render": render.colour, "lambert": render.passes["lambert"], "baked": render.passes["baked"]}
-    return {k: (tonemap_for_metrics(v).clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8) for k, v in images.items()}
+    return _uint8(tonemapped(render, ("render", "lambert", "baked")))
 
 
 def score_view(scores: RelightScores, render: GaussianRender, target: torch.Tensor, mask: torch.Tensor) -> dict:
     """Score one render against its captured image; returns the tone-mapped uint8 images by name."""
     head = render.passes["head"][..., 0] > 0.5 * render.alpha.clamp_min(1e-6)
     region = mask & ~head
-    display = {"target": tonemap_for_metrics(target)}
-    for prefix, name in ROWS.items():
-        image = render.colour if name == "colour" else render.passes[name]
-        display[name if name != "colour" else "render"] = tonemap_for_metrics(image)
-        tonemapped = display[name if name != "colour" else "render"]
-        if bool(region.any()):
-            scores.add(f"{prefix}psnr", float(psnr(tonemapped, display["target"], region)))
-            scores.add(f"{prefix}ssim", 100.0 * float(ssim(tonemapped, display["target"], region)))
+    display = {"target": tonemap_for_metrics(target), **tonemapped(render, ROWS.values())}
+    if bool(region.any()):
+        for prefix, name in ROWS.items():
+            scores.add(f"{prefix}psnr", float(psnr(display[name], display["target"], region)))
+            scores.add(f"{prefix}ssim", 100.0 * float(ssim(display[name], display["target"], region)))
     scores.add("head_excluded_fraction", float(head[mask].float().mean()) if bool(mask.any()) else 0.0)
-    return {k: (v.clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8) for k, v in display.items()}
+    return _uint8(display)

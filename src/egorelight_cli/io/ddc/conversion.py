@@ -34,6 +34,12 @@ def bone_joint_index(bone: str, joint_names) -> int | None:
     return found
 
 
+def _joint_indices(items, lookup, joint_names) -> tuple[list[int], list[str]]:
+    """(joint index of each item by ``lookup(item, joint_names)``, -1 where none; the items without one)."""
+    found = [lookup(item, joint_names) for item in items]
+    return [-1 if j is None else j for j in found], [item for item, j in zip(items, found) if j is None]
+
+
 def keypoint_joint_index(keypoint: str, joint_names) -> int | None:
     """The FIRST joint whose base name equals the keypoint name (``<Side>HandWrist`` -> ``<Side>Hand``)."""
     for side in ("Left", "Right"):
@@ -136,13 +142,7 @@ def read_ddc_character(
     vertices = mesh.vertices / MM_PER_M
 
     skin = read_skin(skin_path, num_vertices=V)
-    bone_joints = []
-    unbound = []
-    for bone in skin.bones:
-        j = bone_joint_index(bone, names)
-        if j is None:
-            unbound.append(bone)
-        bone_joints.append(-1 if j is None else j)
+    bone_joints, unbound = _joint_indices(skin.bones, bone_joint_index, names)
     if unbound:
         raise EgorelightError(f"skin bones match no skeleton joint: {', '.join(unbound)}", skin_path)
 
@@ -159,12 +159,7 @@ def read_ddc_character(
         if len(motion.values) > 1:
             pose_extra = {"frame_ids": motion.frame_ids[1:].tolist(), "values": motion.values[1:].tolist()}
 
-    kp_joints, missing = [], []
-    for kp in KEYPOINT_NAMES:
-        j = keypoint_joint_index(kp, names)
-        if j is None:
-            missing.append(kp)
-        kp_joints.append(-1 if j is None else j)
+    kp_joints, missing = _joint_indices(KEYPOINT_NAMES, keypoint_joint_index, names)
     if missing:
         raise EgorelightError(f"the skeleton has no joint for the keypoints {', '.join(missing)}", skeleton_path)
 
