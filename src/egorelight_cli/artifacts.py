@@ -411,14 +411,16 @@ class ArtifactWriter:
 
     ``out`` ending in a payload suffix (``.npz``, ``.exr``, ``.png``, ``.json``, ``.obj``,
     ``.ply``) makes a single-file artifact: exactly one payload, named like ``out``, with a
-    sidecar manifest ``<out>.json``.
+    sidecar manifest ``<out>.json``. ``keep=False`` discards the payloads at the end of the block
+    instead of committing them (the non-zero ranks of a distributed training run).
     """
 
     SINGLE_FILE_SUFFIXES = (".npz", ".exr", ".png", ".json", ".obj", ".ply")
 
     def __init__(self, out: str | Path, kind: str, stage: str, config: Any = None,
-                 inputs: list[Artifact] | tuple[Artifact, ...] = (), key: str | None = None):
+                 inputs: list[Artifact] | tuple[Artifact, ...] = (), key: str | None = None, keep: bool = True):
         self.out = Path(out)
+        self.keep = keep
         self.kind = kind
         self.version = kind_version(kind)
         self.stage = stage
@@ -553,7 +555,7 @@ class ArtifactWriter:
         return self
 
     def __exit__(self, exc_type, exc, tb) -> bool:
-        if exc_type is None:
+        if exc_type is None and self.keep:
             try:
                 self.commit()
             finally:

@@ -127,8 +127,9 @@ def _stage_run(ctx: click.Context, stage: str):
     from egorelight_cli.pipeline import StageRun
 
     opts = _options(ctx)
+    training = ctx.parent is not None and ctx.parent.info_name == "train"
     return StageRun(stage, preset=opts.preset, sets=tuple(opts.sets), seed=opts.seed, force=opts.force,
-                    device=opts.device, threads=opts.threads)
+                    device=opts.device, threads=opts.threads, training=training)
 
 
 def _character_run(ctx: click.Context):

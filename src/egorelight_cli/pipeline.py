@@ -34,6 +34,7 @@ class StageRun:
     force: bool = False
     device: str = "auto"
     threads: int | None = None  # --threads; None: runtime.available_cores()
+    training: bool = False  # a `train <stage>` command: may run data-parallel under torchrun
 
     def config(self) -> Config:
         return resolve_config(self.stage, self.preset, self.sets, self.seed)
@@ -98,9 +99,11 @@ class StageRun:
         check_output(out, kind, [p for a in inputs for p in (a.path, a.manifest_path)] + list(source_files))
         if self.up_to_date(out, kind, inputs, source_files, options):
             return out
+        group = self._join_process_group(device)
         key, sources = self.cache_key(inputs, source_files, options)
         started = time.perf_counter()
-        with ArtifactWriter(out, kind=kind, stage=self.stage, config=config, inputs=inputs, key=key) as writer:
+        with ArtifactWriter(out, kind=kind, stage=self.stage, config=config, inputs=inputs, key=key,
+                            keep=group.primary) as writer:
             writer.config = _keyed_config(config, options)
             if sources:
                 writer.extra["sources"] = sources
@@ -109,10 +112,35 @@ class StageRun:
             writer.runtime["threads"] = threads
             writer.runtime["threads_source"] = threads_source
             writer.runtime["preset"] = config.preset
+            if group.distributed:
+                writer.runtime["distributed"] = group.manifest()
             write(writer, config)
             writer.timing["wall_s"] = round(time.perf_counter() - started, 3)
+        if group.distributed:
+            _leave_process_group()  # after rank 0 has committed
         console.info(f"{out}: wrote {kind} ({writer.timing['wall_s']:.1f} s)")
         return out
+
+    def _join_process_group(self, device):
+        """The torchrun process group of a ``train`` command (a single process without torchrun);
+        a stage that does not train refuses to run under torchrun (its ranks would race for one output)."""
+        from egorelight_cli.nn import distributed
+
+        if distributed.requested_world_size() > 1 and not self.training:
+            raise EgorelightError(f"{self.stage} does not run under torchrun (WORLD_SIZE="
+                                  f"{distributed.requested_world_size()}): only `train <stage>` is data-parallel; "
+                                  "shard a per-frame stage with make or a job array instead")
+        group = distributed.init_from_environment(device)
+        if not group.primary:
+            console.set_verbosity(console.QUIET)  # rank 0 speaks for the group
+        return group
+
+
+def _leave_process_group() -> None:
+    from egorelight_cli.nn import distributed
+
+    distributed.barrier()
+    distributed.shutdown()
 
 
 def _keyed_config(config: Config, options: Mapping[str, Any] | None) -> dict:

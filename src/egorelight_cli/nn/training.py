@@ -5,6 +5,10 @@ own batch, seeded by the step); :func:`train` runs the optimiser, logs the losse
 checkpoint every ``checkpoint_every`` steps and, only when asked (``--resume``, see
 :class:`Checkpoint`), continues a killed run from a checkpoint of the same cache key with its
 optimiser and learning-rate schedule restored.
+
+Under ``torchrun`` (:mod:`egorelight_cli.nn.distributed`) the step function computes its loss on
+this rank's share of the step's global batch, the loop averages the gradients over the ranks
+before each optimiser step and the logged losses over the ranks, and only rank 0 checkpoints.
 """
 
 from __future__ import annotations
@@ -18,6 +22,7 @@ import torch
 
 from egorelight_cli import console
 from egorelight_cli.errors import EgorelightError
+from egorelight_cli.nn.distributed import average_gradients, average_values, world
 
 
 @dataclass(frozen=True)
@@ -117,6 +122,8 @@ def train(model: torch.nn.Module, optimizer: torch.optim.Optimizer,
     :class:`Checkpoint` (a plain path is written, never resumed from)."""
     checkpoint = as_checkpoint(checkpoint)
     start, curve = _start(checkpoint, model, optimizer, scheduler, desc)
+    primary = world().primary
+    parameters = [p for group in optimizer.param_groups for p in group["params"]]
     model.train()
     sums: dict[str, float] = {}
     count = 0
@@ -127,6 +134,7 @@ def train(model: torch.nn.Module, optimizer: torch.optim.Optimizer,
             raise EgorelightError(f"{desc}: loss became {loss.item()} at step {step} (lower the learning rate?)")
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
+        average_gradients(parameters)  # no-op in a single process
         optimizer.step()
         if scheduler is not None:
             scheduler.step()
@@ -135,9 +143,9 @@ def train(model: torch.nn.Module, optimizer: torch.optim.Optimizer,
         count += 1
         last = step + 1 == num_steps
         if (step + 1) % log_every == 0 or last:
-            curve.append({"step": step + 1, **{k: v / count for k, v in sums.items()}})
+            curve.append({"step": step + 1, **average_values({k: v / count for k, v in sums.items()})})
             sums, count = {}, 0
-        if checkpoint is not None and ((step + 1) % checkpoint_every == 0 or last):
+        if checkpoint is not None and primary and ((step + 1) % checkpoint_every == 0 or last):
             save_checkpoint(checkpoint, model, optimizer, step + 1, curve, scheduler)
     model.eval()
     return curve

@@ -269,6 +269,7 @@ def animation_loss(model: AnimationModel, x: torch.Tensor, theta: torch.Tensor, 
 def train_animation_model(model: AnimationModel, data: TrainingData, settings: TrainSettings, no_depth: bool = False,
                           checkpoint=None) -> list[dict]:
     """Optimise ``model.net`` on ``data`` (see the module docstring); returns the curve."""
+    from egorelight_cli.nn.distributed import rank_share
     from egorelight_cli.nn.training import train
 
     S = len(data.frame_ids)
@@ -283,6 +284,7 @@ def train_animation_model(model: AnimationModel, data: TrainingData, settings: T
         x = data.inputs[rows].clone()
         drop = np.ones(len(rows), bool) if no_depth else rng.random(len(rows)) < settings.depth_dropout
         x[torch.as_tensor(drop), XI_CHANNELS] = 0.0
+        x, rows = rank_share(x), rank_share(rows)  # this process's share under torchrun
         return animation_loss(model, x.to(model.device), data.theta[rows].to(model.device),
                               [data.targets[r] for r in rows], [data.trees[r] for r in rows], settings)
 

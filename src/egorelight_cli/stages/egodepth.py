@@ -231,6 +231,7 @@ def train_depth_net(views: Sequence[TrainingView], ray_maps: dict, self_masks: d
                     net_cfg, device: torch.device, checkpoint=None, prior_fn=None) -> tuple[DepthNet, list[dict]]:
     """Fit a :class:`DepthNet` to the supervised views; returns the model (eval mode, CPU) and curve."""
     from egorelight_cli.nn.augment import ColourJitter
+    from egorelight_cli.nn.distributed import rank_share
     from egorelight_cli.nn.training import train
 
     data = _tensors(views, ray_maps, self_masks)
@@ -255,7 +256,7 @@ def train_depth_net(views: Sequence[TrainingView], ray_maps: dict, self_masks: d
         index = torch.randint(0, N, (settings.batch,), generator=generator)
         batch = _crop({k: v[index] for k, v in data.items()}, settings.crop, generator)
         batch["image"] = jitter(batch["image"], generator)
-        batch = {k: v.to(device) for k, v in batch.items()}
+        batch = {k: rank_share(v).to(device) for k, v in batch.items()}  # this process's share under torchrun
         losses = depth_losses(model, batch, batch.get("prior"))
         losses["loss"] = settings.w_depth * losses["depth_l1_log"] + settings.w_mask * losses["mask_bce"]
         return losses

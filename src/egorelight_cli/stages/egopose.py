@@ -328,6 +328,7 @@ def train_egopose(frames: EgoFrames, mocap: Keypoints, rig: RigGeometry, setting
                   checkpoint_dir=None, backbone_state: dict | None = None) -> TrainResult:
     """Train on the usable content frames of ``frames`` (see the module docstring)."""
     from egorelight_cli.nn.egopose_net import load_backbone_weights
+    from egorelight_cli.nn.distributed import rank_share
     from egorelight_cli.nn.training import train
 
     train_cfg = settings.train
@@ -362,6 +363,7 @@ def train_egopose(frames: EgoFrames, mocap: Keypoints, rig: RigGeometry, setting
         g = torch.Generator().manual_seed(seed * 1_000_003 + step)
         pick = torch.randint(len(rows), (batch,), generator=g)
         x = occlude_and_noise(jitter_images(images[pick], settings, g, jitter_on), settings, g)
+        x, pick = rank_share(x), rank_share(pick)  # this process's share of the batch (all of it without torchrun)
         return frame_losses(net.forward_frames(x, rig), target, pick, rig, joint_weights, train_cfg.weights)
 
     optimizer = torch.optim.Adam(net.parameters(), lr=lr)
@@ -444,6 +446,7 @@ def _train_temporal(net: EgoPoseNet, images: torch.Tensor, data: EgoFrames, targ
                     settings: EgoPoseSettings, joint_weights: torch.Tensor, seed: int, checkpoint_dir,
                     step_offset: int) -> list[dict]:
     """Phase 2: the temporal module on windows of frozen per-frame estimates (jittered copies)."""
+    from egorelight_cli.nn.distributed import rank_share
     from egorelight_cli.nn.training import train
 
     cfg = settings.train.temporal
@@ -472,6 +475,7 @@ def _train_temporal(net: EgoPoseNet, images: torch.Tensor, data: EgoFrames, targ
         which = torch.randint(cached.shape[0], (batch, net.window), generator=g)
         win = cached[which, idx[pick]]  # (B,W,J,3)
         win = win + noise * torch.randn(win.shape, generator=g)
+        win, pick = rank_share(win), rank_share(pick)
         pred = net.refine(win, H[pick])
         conf = target.confidence[pick] * joint_weights
         err = (torch.linalg.vector_norm(pred - target.world[pick], dim=-1) * conf).sum() / conf.sum().clamp_min(1e-6)

@@ -179,7 +179,8 @@ def _write_envmap(writer: ArtifactWriter, cfg: Config, capture, calibration, seq
         inverse = _inverse(writer, cfg, capture, calibration, result, loaded)
         models.update({name: fit.colour for name, fit in inverse.fits.items()})
         row = "fitted"
-    maps = {name: model.apply_numpy(result.inpainted) for name, model in models.items()}
+    # the root-polynomial models' cross terms can take a texel below zero: radiance is clamped there
+    maps = {name: np.maximum(model.apply_numpy(result.inpainted), 0.0) for name, model in models.items()}
     envmap = maps[row]
     intensities = lightstage.envmap_to_intensities(envmap)
     write_envmap(writer.path(ENVMAP_EXR), envmap)

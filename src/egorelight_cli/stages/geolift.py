@@ -41,6 +41,7 @@ from egorelight_cli.io.exr import read_exr
 from egorelight_cli.io.images import read_image
 from egorelight_cli.structures.mesh_sequence import MeshSequence
 from egorelight_cli.nn.geolift_net import HISTORY, GeoLiftNet
+from egorelight_cli.nn.distributed import rank_share
 from egorelight_cli.nn.training import train
 from egorelight_cli.nn.unet import sample_feature_map
 from egorelight_cli.render.raster import UVRaster, rasterize, uv_to_texel_coords
@@ -271,6 +272,7 @@ def train_geolift(views: list[TrainView], coarse: CoarseMaps, starts: np.ndarray
         rng = np.random.default_rng([settings.seed, k])
         batch = [views[i] for i in rng.choice(len(views), size=min(settings.views_per_step, len(views)),
                                                replace=False)]
+        batch = rank_share(batch)  # this process's share under torchrun
         frames = sorted({v.index for v in batch})
         normals, texture = model(inputs[frames], frames_all[frames])
         totals = {name: torch.zeros(()) for name in settings.weights}

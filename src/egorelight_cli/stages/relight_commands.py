@@ -32,6 +32,7 @@ from egorelight_cli.errors import EgorelightError
 from egorelight_cli.io.capture import Capture, frame_file, open_capture
 from egorelight_cli.io.exr import read_exr, write_exr_layers
 from egorelight_cli.io.images import read_image, write_image
+from egorelight_cli.nn.distributed import rank_share
 from egorelight_cli.nn.training import train
 from egorelight_cli.render.image_metrics import tonemap_for_metrics
 from egorelight_cli.pipeline import StageRun
@@ -297,16 +298,26 @@ class RelightCommands:
             optimizer = torch.optim.Adam(model.parameters(), lr=float(t.lr))
             steps = int(t.steps)
 
-            def step(k: int) -> dict[str, torch.Tensor]:
-                rng = np.random.default_rng([int(cfg.seed), k])
-                f, camera_name = train_views[int(rng.integers(len(train_views)))]
-                scale = float(rng.uniform(0, 1)) if k >= steps // 2 and rng.uniform() < float(t.augment_p) else 1.0
+            weights = {name: float(t.weights[name]) for name in rl.LOSS_WEIGHTS}
+            if int(t.views_per_step) < 1:
+                raise EgorelightError(f"train.views_per_step must be at least 1, not {t.views_per_step}")
+
+            def view_loss(f: int, camera_name: str, scale: float) -> dict[str, torch.Tensor]:
                 rays, valid = data.view_rays(f, camera_name)
                 render, avatar = rl.render_relit(model, data.frame(f), data.coverage,
                                                  data.capture.studio_cameras[camera_name], rays, valid, scale)
                 target, mask = data.target(f, camera_name)
-                return rl.relight_loss(render, target * scale, mask, avatar.regulariser, str(t.loss_space),
-                                       {k: float(t.weights[k]) for k in rl.LOSS_WEIGHTS})
+                return rl.relight_loss(render, target * scale, mask, avatar.regulariser, str(t.loss_space), weights)
+
+            def step(k: int) -> dict[str, torch.Tensor]:
+                rng = np.random.default_rng([int(cfg.seed), k])
+                draws = []  # the step's global batch: (view, intensity scale) pairs
+                for _ in range(int(t.views_per_step)):
+                    f, camera_name = train_views[int(rng.integers(len(train_views)))]
+                    scale = float(rng.uniform(0, 1)) if k >= steps // 2 and rng.uniform() < float(t.augment_p) else 1.0
+                    draws.append((f, camera_name, scale))
+                losses = [view_loss(*draw) for draw in rank_share(draws)]  # this process's share under torchrun
+                return {name: torch.stack([loss[name] for loss in losses]).mean() for name in losses[0]}
 
             started = time.perf_counter()
             curve = train(model, optimizer, step, steps, checkpoint=checkpoint, log_every=int(t.log_every),
