@@ -281,6 +281,36 @@ def _egopose_commands(ctx: click.Context, no_jitter: bool = False):
     return EgoPoseCommands(_stage_run(ctx, "egopose"))
 
 
+def frame_options(func):
+    """``--frames A:B`` / ``--shard I/N`` of a per-frame stage, passed on as ``frames`` and
+    ``shard`` (see :class:`~egorelight_cli.sharding.FrameRange`); ``egorelight merge`` joins the parts."""
+    func = click.option("--shard", default=None, metavar="I/N",
+                        help="Compute part I of N contiguous frame shards (I from 0): a partial artifact for "
+                             "`egorelight merge`.")(func)
+    return click.option("--frames", default=None, metavar="A:B",
+                        help="Compute only the output frames at positions A..B-1: a partial artifact for "
+                             "`egorelight merge`.")(func)
+
+
+def _frame_range(frames: str | None, shard: str | None):
+    from egorelight_cli.sharding import FrameRange
+
+    return FrameRange.parse(frames, shard)
+
+
+@cli.command("merge")
+@click.argument("parts", nargs=-1, required=True, type=click.Path(path_type=Path))
+@click.option("--out", required=True, type=click.Path(path_type=Path), help="The merged artifact directory.")
+@common_options
+@click.pass_context
+def merge_command(ctx: click.Context, parts: tuple[Path, ...], out: Path) -> None:
+    """Join the frame shards PARTS of one per-frame stage run (--frames / --shard) into the artifact
+    a single run over all frames writes."""
+    from egorelight_cli.sharding import merge_parts
+
+    merge_parts(parts, out, force=_options(ctx).force)
+
+
 @cli.command("egopose")
 @click.option("--capture", "capture", required=True, type=click.Path(path_type=Path), help="Capture directory.")
 @click.option("--calibration", required=True, type=click.Path(path_type=Path), help="Calibration artifact.")
@@ -288,12 +318,13 @@ def _egopose_commands(ctx: click.Context, no_jitter: bool = False):
 @click.option("--sequence", "--seq", "sequence", default="test", show_default=True,
               help="Sequence to estimate (wild: tracker head poses).")
 @click.option("--out", required=True, type=click.Path(path_type=Path), help="Keypoints artifact directory (or .npz file).")
+@frame_options
 @common_options
 @click.pass_context
 def egopose_command(ctx: click.Context, capture: Path, calibration: Path, model_path: Path, sequence: str,
-                    out: Path) -> None:
+                    out: Path, frames: str | None, shard: str | None) -> None:
     """Stereo down-facing fisheye images + head pose -> 57 world keypoints per frame."""
-    _egopose_commands(ctx).egopose(capture, calibration, model_path, sequence, out)
+    _egopose_commands(ctx).egopose(capture, calibration, model_path, sequence, out, _frame_range(frames, shard))
 
 
 @train_group.command("egopose")

@@ -56,8 +56,9 @@ def save_keypoints(writer, keypoints: Keypoints, name: str | None = None, **meta
     """Write ``keypoints`` into an :class:`~egorelight_cli.artifacts.ArtifactWriter` (kind keypoints)."""
     name = name or (writer.out.name if writer.single_file else KEYPOINTS_PAYLOAD)
     extra = keypoints.meta()
-    return writer.save_npz(name, keypoints.arrays(), frame_ids=keypoints.frame_ids, units=extra.pop("units"),
-                           **extra, **meta)
+    arrays = keypoints.arrays()
+    return writer.save_npz(name, arrays, frame_ids=keypoints.frame_ids, units=extra.pop("units"),
+                           rows=sorted(k for k in arrays if k != "names"), **extra, **meta)
 
 
 def read_keypoints_npz(path: str | Path) -> Keypoints:

@@ -33,6 +33,7 @@ Frame ids are studio (master-clock) ids; the ego image of frame ``f`` is ego fra
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import cv2
@@ -50,12 +51,11 @@ from egorelight_cli.io.capture import Capture, SequenceInfo
 from egorelight_cli.structures.keypoints import Keypoints
 from egorelight_cli.nn.egopose_net import (EgoPoseNet, RigGeometry, heading_frame, project_keypoints,
                                            range_log_init, transform, windows)
-from egorelight_cli.structures.keypoints import (BODY_KEYPOINTS, BODY_SLICE, FINGER_SEGMENTS, FINGERS, KEYPOINT_NAMES,
-                                                 NUM_KEYPOINTS)
+from egorelight_cli.structures.keypoints import (BODY_SLICE, FINGER_SEGMENTS, FINGERS, HANDS_SLICE,
+                                                 KEYPOINT_NAMES, NUM_KEYPOINTS)
 
 EGOPOSE_MODEL_TYPE = "egopose"
 DOWN_ROLES = ("down_left", "down_right")
-HANDS_SLICE = slice(len(BODY_KEYPOINTS), NUM_KEYPOINTS)
 
 
 # ----------------------------------------------------------------------------------- settings
@@ -179,12 +179,9 @@ def head_poses_for(capture: Capture, calibration: Calibration, info: SequenceInf
                           calibration.source)
 
 
-def load_frames(capture: Capture, calibration: Calibration, sequence: str, size: int,
-                only_content: bool = False) -> EgoFrames:
-    """Read the down-facing views of ``sequence`` at input width ``size`` (see :class:`EgoFrames`).
-
-    Frames without an ego image of either view are left out; ``only_content`` keeps only the
-    frames after the sync prefix."""
+def frame_table(capture: Capture, calibration: Calibration, sequence: str, only_content: bool = False) -> EgoFrames:
+    """The frames :func:`load_frames` reads (ids, head poses, flags), without their images
+    (``images`` is an empty (T,0) tensor): cheap, for choosing shards and preview frames."""
     info = capture.sequence(sequence)
     info.require_stream("ego")
     missing = [r for r in DOWN_ROLES if r not in info.ego_roles]
@@ -214,15 +211,29 @@ def load_frames(capture: Capture, calibration: Calibration, sequence: str, size:
         i = lookup.get(int(frame))
         if i is not None and poses.valid[i]:
             T[row], valid[row] = poses.T_world_from_hmd[i], True
+    fps = float(info.doc["fps"]) if info.doc.get("fps") else None
+    return EgoFrames(sequence, ids, ego_ids, torch.empty((len(ids), 0), dtype=torch.uint8), T, valid,
+                     np.isin(ids, content_ids), source, fps)
+
+
+def load_frames(capture: Capture, calibration: Calibration, sequence: str, size: int,
+                only_content: bool = False, rows: slice | None = None) -> EgoFrames:
+    """Read the down-facing views of ``sequence`` at input width ``size`` (see :class:`EgoFrames`).
+
+    Frames without an ego image of either view are left out; ``only_content`` keeps only the
+    frames after the sync prefix; ``rows`` reads only those rows of :func:`frame_table`."""
+    table = frame_table(capture, calibration, sequence, only_content)
+    if rows is not None:
+        table = table.select(np.arange(len(table.frame_ids))[rows])
+    info = capture.sequence(sequence)
     camera = capture.ego_camera(DOWN_ROLES[0])
     w, h = input_size(camera.width, camera.height, size)
-    images = np.empty((len(ids), len(DOWN_ROLES), 3, h, w), np.uint8)
-    for row, ego in enumerate(ego_ids):
+    images = np.empty((len(table.frame_ids), len(DOWN_ROLES), 3, h, w), np.uint8)
+    for row, ego in enumerate(table.ego_ids):
         for v, role in enumerate(DOWN_ROLES):
             image = info.read_ego_image(role, int(ego))
             images[row, v] = cv2.resize(image, (w, h), interpolation=cv2.INTER_AREA).transpose(2, 0, 1)
-    fps = float(info.doc["fps"]) if info.doc.get("fps") else None
-    return EgoFrames(sequence, ids, ego_ids, torch.from_numpy(images), T, valid, np.isin(ids, content_ids), source, fps)
+    return dataclasses.replace(table, images=torch.from_numpy(images))
 
 
 def as_float_images(images: torch.Tensor) -> torch.Tensor:
@@ -504,6 +515,11 @@ class Prediction:
     per_frame: np.ndarray
     pixels: np.ndarray
 
+    def select(self, rows: np.ndarray) -> "Prediction":
+        k = self.keypoints
+        return Prediction(Keypoints(k.xyz[rows], k.confidence[rows], k.frame_ids[rows], k.names, k.fps),
+                          self.per_frame[rows], self.pixels[rows])
+
 
 def predict(net: EgoPoseNet, frames: EgoFrames, rig: RigGeometry, confidence_sigma_m: float,
             batch: int = 16) -> Prediction:
@@ -520,7 +536,9 @@ def predict(net: EgoPoseNet, frames: EgoFrames, rig: RigGeometry, confidence_sig
         fused_world = transform(H, torch.cat(fused))
         usable = torch.as_tensor(frames.usable)
         idx = windows(len(frames.frame_ids), net.window, usable)
-        refined = net.refine(fused_world[idx], H)
+        # one frame per call: a frame's output then does not depend on which frames share its batch
+        # (float rounding of batched matmuls), so frame shards merge into the single run's bytes
+        refined = torch.cat([net.refine(fused_world[idx[t:t + 1]], H[t:t + 1]) for t in range(len(idx))])
     spread = torch.cat(disagreement)
     confidence = torch.exp(-0.5 * (spread / confidence_sigma_m) ** 2).clamp(1e-3, 1.0).numpy()
     xyz = refined.numpy().astype(np.float32)
@@ -604,14 +622,19 @@ def _draw(image: np.ndarray, pixels: np.ndarray, colour, scale: int) -> None:
             cv2.circle(image, (int(round(p[0])), int(round(p[1]))), 2, colour, -1, cv2.LINE_AA)
 
 
-def preview_image(capture: Capture, frames: EgoFrames, rig: RigGeometry, prediction: Prediction,
-                  truth: Keypoints | None, count: int, tile: int = 256) -> np.ndarray:
-    """(H,W,3) uint8: per previewed frame (row) both down-facing views with ground-truth keypoints
-    in green and predictions in red."""
-    info = capture.sequence(frames.sequence)
-    candidates = np.nonzero(frames.usable)[0] if frames.usable.any() else np.arange(len(frames.frame_ids))
-    rows = candidates[np.unique(np.linspace(0, len(candidates) - 1, max(min(count, len(candidates)), 1)).round()
+def preview_rows(usable: np.ndarray, count: int) -> np.ndarray:
+    """Rows (positions among the output frames) the preview shows: ``count`` evenly spread usable
+    frames (any frames when none is usable)."""
+    candidates = np.nonzero(usable)[0] if usable.any() else np.arange(len(usable))
+    return candidates[np.unique(np.linspace(0, len(candidates) - 1, max(min(count, len(candidates)), 1)).round()
                                 .astype(int))]
+
+
+def preview_image(capture: Capture, frames: EgoFrames, rig: RigGeometry, prediction: Prediction,
+                  truth: Keypoints | None, rows: np.ndarray, tile: int = 256) -> list[np.ndarray]:
+    """Preview rows (H,W,3) uint8, one per row of ``frames`` in ``rows``: both down-facing views
+    with ground-truth keypoints in green and predictions in red."""
+    info = capture.sequence(frames.sequence)
     T_cam_from_hmd = rig.T_cam_from_hmd.double().numpy()
     scale = max(1, tile // rig.width)
     out_rows = []
@@ -633,4 +656,4 @@ def preview_image(capture: Capture, frames: EgoFrames, rig: RigGeometry, predict
                         (255, 255, 0), 1, cv2.LINE_AA)
             tiles.append(image)
         out_rows.append(np.concatenate(tiles, axis=1))
-    return np.concatenate(out_rows, axis=0)
+    return out_rows

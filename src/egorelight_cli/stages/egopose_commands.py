@@ -34,6 +34,7 @@ from egorelight_cli.structures.calibration import Calibration
 from egorelight_cli.io.capture import Capture, open_capture
 from egorelight_cli.io.keypoints import read_keypoints_npz, save_keypoints
 from egorelight_cli.pipeline import StageRun
+from egorelight_cli.sharding import FrameRange
 
 # torch, the network and the stage module load only past the cache check (importing torch alone
 # takes seconds; an up-to-date `egopose` returns in under one)
@@ -156,47 +157,59 @@ class EgoPoseCommands:
             shutil.rmtree(checkpoint_dir)
         return produced
 
-    def egopose(self, capture_path: Path, calibration_path: Path, model_path: Path, sequence: str, out: Path) -> Path:
+    def egopose(self, capture_path: Path, calibration_path: Path, model_path: Path, sequence: str, out: Path,
+                frame_range: FrameRange = FrameRange()) -> Path:
         capture, capture_artifact = open_capture(capture_path, [sequence])
         calibration, calibration_artifact = open_calibration(calibration_path)
         capture.sequence(sequence).require_stream("ego")
         inputs = [a for a in (capture_artifact, calibration_artifact, open_artifact(model_path, kind="model"))
                   if a is not None]
-        options = {"sequence": sequence}
+        options = {"sequence": sequence, **frame_range.key()}
         if self.run.up_to_date(out, "keypoints", inputs, options=options):
             return Path(out)
         model, _ = load_egopose_model(model_path)
-        from egorelight_cli.stages.egopose import (evaluate, groundtruth_keypoints, load_frames, predict, preview_image,
-                                                   rig_geometry)
+        from egorelight_cli.sharding import write_preview
+        from egorelight_cli.stages.egopose import (frame_table, groundtruth_keypoints, load_frames, predict,
+                                                   preview_image, preview_rows, rig_geometry)
+        from egorelight_cli.stages.egopose_scores import SCORES_NPZ, egopose_metrics, egopose_scores
 
         def write(writer: ArtifactWriter, cfg: Config) -> None:
             rig = rig_geometry(capture, calibration)
-            frames = load_frames(capture, calibration, sequence, model.input_size)
+            table = frame_table(capture, calibration, sequence)
+            start, stop = frame_range.bounds(len(table.frame_ids))
+            first = max(0, start - (model.net.window - 1))  # the temporal window's context before the range
+            frames = load_frames(capture, calibration, sequence, model.input_size, rows=slice(first, stop))
             started = time.perf_counter()
             prediction = predict(model.net, frames, rig, float(cfg.confidence_sigma_m))
             elapsed = time.perf_counter() - started
+            keep = np.arange(start - first, len(frames.frame_ids))
+            frames, prediction = frames.select(keep), prediction.select(keep)
             writer.timing["inference_ms_per_frame"] = round(1000 * elapsed / len(frames.frame_ids), 2)
+            if not frame_range.whole:
+                writer.extra["shard"] = frame_range.manifest(len(table.frame_ids))
             save_keypoints(writer, prediction.keypoints, sequence=sequence, head_poses=frames.head_pose_source)
-            writer.metrics.update({"output_frames": len(frames.frame_ids), "invalid_head_pose_frames": int((~frames.valid).sum()),
-                                   "content_frames": int(frames.content.sum()), "head_poses": frames.head_pose_source,
-                                   "mean_confidence": round(float(prediction.keypoints.confidence[frames.valid].mean()), 4)
-                                   if frames.valid.any() else 0.0})
             truth = groundtruth_keypoints(capture, sequence)
-            if truth is not None and frames.head_pose_source == "calibration":
-                writer.metrics.update(evaluate(prediction, frames, truth, model.mean_pose_heading))
-            elif truth is not None:
+            scored = truth is not None and frames.head_pose_source == "calibration"
+            scores = egopose_scores(prediction, frames, truth if scored else None, model.mean_pose_heading)
+            writer.metrics["head_poses"] = frames.head_pose_source
+            writer.metrics.update(egopose_metrics(scores, prediction.keypoints.confidence))
+            if truth is not None and not scored:
                 writer.metrics["groundtruth_not_scored"] = "head poses are in the tracker's own world frame"
             if writer.single_file:
                 return
+            writer.save_npz(SCORES_NPZ, scores, frame_ids=frames.frame_ids, rows=sorted(scores),
+                            units={k: "cm" for k in scores if k.endswith("_cm")},
+                            description="per-frame, per-joint errors against the ground truth (NaN: not scored) "
+                                        "and the frame flags the metrics are computed from")
             writer.save_npz(PER_FRAME_NPZ, {"xyz": prediction.per_frame, "pixels": prediction.pixels.astype(np.float32),
                                             "frame_ids": frames.frame_ids},
-                            frame_ids=frames.frame_ids, units={"xyz": "m", "pixels": "px"},
+                            frame_ids=frames.frame_ids, units={"xyz": "m", "pixels": "px"}, rows=["frame_ids", "pixels", "xyz"],
                             description="fused per-frame keypoints before the temporal module; soft-argmax pixels "
                                         "per view (down_left, down_right)")
-            from egorelight_cli.io.images import write_image
-
-            write_image(writer.path(PREVIEW_PNG), preview_image(capture, frames, rig, prediction, truth,
-                                                                int(cfg.preview.frames), int(cfg.preview.tile)))
+            shown = [int(p) for p in preview_rows(table.usable, int(cfg.preview.frames)) if start <= p < stop]
+            images = preview_image(capture, frames, rig, prediction, truth, np.array(shown, int) - start,
+                                   int(cfg.preview.tile))
+            write_preview(writer, dict(zip(shown, images)), frame_range, PREVIEW_PNG)
 
         return self.run.produce(out, "keypoints", write, inputs=inputs, options=options)
 

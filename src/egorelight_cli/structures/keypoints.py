@@ -42,6 +42,7 @@ def hand_keypoints(side: str) -> tuple[str, ...]:
 KEYPOINT_NAMES: tuple[str, ...] = BODY_KEYPOINTS + hand_keypoints("Left") + hand_keypoints("Right")
 NUM_KEYPOINTS = len(KEYPOINT_NAMES)
 BODY_SLICE = slice(0, len(BODY_KEYPOINTS))
+HANDS_SLICE = slice(len(BODY_KEYPOINTS), NUM_KEYPOINTS)
 LEFT_HAND_SLICE = slice(len(BODY_KEYPOINTS), len(BODY_KEYPOINTS) + 21)
 RIGHT_HAND_SLICE = slice(len(BODY_KEYPOINTS) + 21, len(BODY_KEYPOINTS) + 42)
 
