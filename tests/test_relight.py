@@ -127,3 +127,24 @@ def test_relight_under_another_light_recomputes_the_features_and_scores_nothing(
         err = capsys.readouterr().err.strip()
         assert code == 2 and len(err.splitlines()) == 1 and "egorelight: error:" in err, (bad, err)
         assert not out.exists()
+
+
+@pytest.mark.parametrize("seq, lighting, counts", [
+    ("relight_train", [], (2,)),    # its 2 HDR-lit frames, scored against the captured views
+    ("test", ["--flat"], (2, 4)),   # every frame with a mesh (11), under a flat light: not scored
+])
+def test_relight_frame_shards_merge_into_the_single_run(tiny_capture, skinned_meshes, relight_inputs, relight_model,
+                                                        tmp_path, seq, lighting, counts):
+    from tiny_models import assert_shards_merge_into
+
+    args = ["--preset", "tiny", "-q", "relight", "--capture", tiny_capture, "--meshes",
+            skinned_meshes / f"{seq}.npz", "--uvmaps", relight_inputs / f"uvmaps_{seq}",
+            "--model", relight_model, "--seq", seq, "--cameras", "all", *lighting]
+    assert _main(*args, "--out", tmp_path / "whole") == 0
+    metrics = json.loads((tmp_path / "whole" / "manifest.json").read_text())["metrics"]
+    assert ("psnr" in metrics) == (not lighting)
+    for count in counts:
+        parts = [tmp_path / f"part{i}of{count}" for i in range(count)]
+        for i, part in enumerate(parts):
+            assert _main(*args, "--shard", f"{i}/{count}", "--out", part) == 0
+        assert_shards_merge_into(tmp_path / "whole", parts, tmp_path / f"merged{count}")

@@ -3,13 +3,12 @@
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import pytest
 
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.sharding import FrameRange
-from tiny_models import cli_exit_code
+from tiny_models import assert_shards_merge_into, cli_exit_code
 
 
 def test_frame_ranges_cover_a_sequence_once():
@@ -49,22 +48,11 @@ def egopose_runs(tiny_capture, oracle_calibration_artifact, tmp_path_factory):
     return root, run
 
 
-def _payloads(artifact: Path) -> dict[str, str]:
-    return {o["path"]: o["digest"] for o in json.loads((artifact / "manifest.json").read_text())["outputs"]}
-
-
 @pytest.mark.parametrize("count", [2, 4])
 def test_merged_egopose_shards_equal_the_single_run(egopose_runs, count):
     root, run = egopose_runs
-    parts = [root / f"part{i}of{count}" for i in range(count)]
-    shards = [json.loads((p / "manifest.json").read_text())["shard"] for p in parts]
-    assert sum(s["stop"] - s["start"] for s in shards) == shards[0]["sequence_frames"]
-    assert cli_exit_code("merge", *reversed(parts), "--out", root / f"merged{count}") == 0  # any order
-    whole, merged = (json.loads((root / n / "manifest.json").read_text()) for n in ("whole", f"merged{count}"))
-    assert _payloads(root / f"merged{count}") == _payloads(root / "whole")  # byte-identical payloads
-    assert merged["metrics"] == whole["metrics"]
-    assert merged["cache_key"] == whole["cache_key"]
-    assert "shard" not in merged and len(merged["parts"]) == count
+    merged = assert_shards_merge_into(root / "whole", [root / f"part{i}of{count}" for i in range(count)],
+                                      root / f"merged{count}")
     # the single run finds the merged artifact up to date: nothing is recomputed
     assert cli_exit_code("egopose", *run, "--out", root / f"merged{count}") == 0
     assert json.loads((root / f"merged{count}" / "manifest.json").read_text()) == merged

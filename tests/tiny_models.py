@@ -25,3 +25,25 @@ def tiny_geolift_uvmaps(root: Path, capture: Path, skinned_meshes: Path, sequenc
         assert cli_exit_code("--preset", "tiny", "-q", "geolift", "--meshes", skinned_meshes / f"{seq}.npz", "--model",
                              root / "geolift", "--capture", capture, "--seq", seq, "--out", root / f"uvmaps_{seq}") == 0
     return root
+
+
+def assert_shards_merge_into(whole: Path, parts: list[Path], merged: Path) -> dict:
+    """``egorelight merge PARTS --out MERGED`` (given in reverse order) writes ``whole``'s payloads
+    byte for byte, its metrics and its cache key; returns the merged manifest."""
+    import json
+
+    assert cli_exit_code("merge", *reversed(parts), "--out", merged) == 0
+
+    def manifest(path: Path) -> dict:
+        return json.loads((path / "manifest.json").read_text())
+
+    def payloads(path: Path) -> dict[str, str]:
+        return {o["path"]: o["digest"] for o in manifest(path)["outputs"]}
+
+    shards = [manifest(p)["shard"] for p in parts]
+    assert sum(s["stop"] - s["start"] for s in shards) == shards[0]["sequence_frames"]
+    assert payloads(merged) == payloads(whole)
+    assert manifest(merged)["metrics"] == manifest(whole)["metrics"]
+    assert manifest(merged)["cache_key"] == manifest(whole)["cache_key"]
+    assert "shard" not in manifest(merged) and len(manifest(merged)["parts"]) == len(parts)
+    return manifest(merged)

@@ -522,11 +522,12 @@ def train_relight(ctx: click.Context, capture: Path, meshes_path: Path, uvmaps_p
               help="Light every frame with this HDR map (.exr/.hdr, or an envmap artifact; not scored).")
 @click.option("--yaw", type=float, default=0.0, show_default=True, help="Rotation of --envmap about the up axis, degrees.")
 @click.option("--out", required=True, type=click.Path(path_type=Path), help="renders artifact directory.")
+@frame_options
 @common_options
 @click.pass_context
 def relight_command(ctx: click.Context, capture: Path, meshes_path: Path, uvmaps_path: Path, model_path: Path,
                     character: str, seq: str, cameras: str, export: str | None, flat: bool, olat: int | None,
-                    envmap_path: Path | None, yaw: float, out: Path) -> None:
+                    envmap_path: Path | None, yaw: float, out: Path, frames: str | None, shard: str | None) -> None:
     """Render the relightable avatar under a sequence's lighting (or another) and score it against the captured images."""
     from egorelight_cli.stages.relight_commands import LightingOverride
 
@@ -534,7 +535,7 @@ def relight_command(ctx: click.Context, capture: Path, meshes_path: Path, uvmaps
         _options(ctx).sets.append(f"export={export}")
     lighting = LightingOverride.parse(flat, olat, envmap_path, yaw)
     _relight_commands(ctx).predict(capture, meshes_path, uvmaps_path, model_path, character, seq, cameras == "all",
-                                   out, lighting)
+                                   out, lighting, _frame_range(frames, shard))
 
 
 # -------------------------------------------------------------------------------- envmap

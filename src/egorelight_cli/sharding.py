@@ -106,6 +106,10 @@ class FrameRange:
 
 
 PREVIEW_TILES = "preview_tiles"
+#: per shardable stage, the module whose ``merged_metrics(root, part_manifests)`` computes the merged
+#: artifact's metrics from its merged payloads (as the stage's single run does)
+MERGED_METRICS = {"egopose": "egorelight_cli.stages.egopose_scores", "relight": "egorelight_cli.stages.relight_eval",
+                  "egodepth": "egorelight_cli.stages.egodepth_scores"}
 SHARD_OPTIONS = ("frames", "shard")
 
 
@@ -255,7 +259,9 @@ def merge_parts(paths, out, force: bool = False, preview_name: str = "preview.pn
                 shutil.copyfile(copies[0], writer.path(name))
             else:
                 raise EgorelightError(f"{name} differs between the parts and cannot be merged", copies[1])
-        scores = importlib.import_module(f"egorelight_cli.stages.{first['stage']}_scores")
+        if first["stage"] not in MERGED_METRICS:
+            raise EgorelightError(f"stage {first['stage']} has no frame shards to merge", parts[0].manifest_path)
+        scores = importlib.import_module(MERGED_METRICS[first["stage"]])
         writer.metrics.update(scores.merged_metrics(writer.workdir, [p.manifest for p in parts]))
         writer.units.update(first.get("units", {}))
         writer.runtime.update({k: first.get("runtime", {}).get(k) for k in ("device", "preset")})

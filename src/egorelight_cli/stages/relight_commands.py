@@ -42,7 +42,8 @@ from egorelight_cli.render.raster import rasterize_uv
 from egorelight_cli.render.uv_features import TexelLighting, lighting_feature_maps
 from egorelight_cli.stages import relight as rl
 from egorelight_cli.stages.geolift_commands import load_character_meshes, map_path, training_cameras
-from egorelight_cli.stages.relight_eval import RelightScores, display_images, score_view
+from egorelight_cli.sharding import FrameRange, stack_rows, write_preview
+from egorelight_cli.stages.relight_eval import SCORES_NPZ, RelightScores, display_images, score_view
 
 PREVIEW_PNG = "preview.png"
 UVMAP_LAYERS = ("albedo", "shadow", "normal", "diffuse")
@@ -182,14 +183,23 @@ def baseline_passes(frame: rl.RelightFrame, coverage: torch.Tensor) -> dict[str,
     return {"lambert": frame.lambert, "baked": frame.maps.permute(1, 2, 0)[coverage][:, 0:3]}
 
 
+def preview_views(count: int, preview_count: int) -> set[int]:
+    """Positions among ``count`` views that the preview shows (``preview_count`` evenly spread)."""
+    if not preview_count or not count:
+        return set()
+    return set(np.linspace(0, count - 1, min(preview_count, count)).round().astype(int).tolist())
+
+
 def evaluate(model: rl.RelightModel, data: RelightData, views: list[tuple[int, str]], writer: ArtifactWriter | None,
-             preview_count: int = 0, export_ply: bool = False) -> tuple[dict, list[np.ndarray]]:
+             preview_count: int = 0, export_ply: bool = False,
+             preview_at: set[int] | None = None) -> tuple[RelightScores, dict[int, np.ndarray]]:
     """Render and score ``views`` (not scored under a lighting override); write EXR/PNG renders
     when ``writer`` is given, and with ``export_ply`` each frame's Gaussians (as seen by its first
-    view) as a 3DGS PLY."""
-    scores, previews = RelightScores(), []
-    preview_at = set(np.linspace(0, len(views) - 1, min(preview_count, len(views))).round().astype(int).tolist()) \
-        if preview_count and views else set()
+    view) as a 3DGS PLY. Returns the per-view scores and the preview rows by view position
+    (``preview_at``, default ``preview_count`` views spread over ``views``)."""
+    scores, previews = RelightScores(), {}
+    if preview_at is None:
+        preview_at = preview_views(len(views), preview_count)
     with torch.no_grad():
         for i, (f, camera_name) in enumerate(console.progress(views, total=len(views), desc="relight")):
             frame = data.frame(f)
@@ -199,6 +209,7 @@ def evaluate(model: rl.RelightModel, data: RelightData, views: list[tuple[int, s
             render, avatar = rl.render_relit(model, frame, data.coverage, data.capture.studio_cameras[camera_name],
                                              rays, valid, extra_passes=extra)
             if data.lighting is None:
+                scores.start_view()
                 target, mask = data.target(f, camera_name)
                 tonemapped = score_view(scores, render, target, mask)
             else:
@@ -215,10 +226,15 @@ def evaluate(model: rl.RelightModel, data: RelightData, views: list[tuple[int, s
 
                     write_gaussian_ply(ply, avatar.gaussians, rgb=tonemap_for_metrics(avatar.gaussians.colours).numpy())
             if i in preview_at:
-                previews.append(np.concatenate([tonemapped[k] for k in PREVIEW_COLUMNS if k in tonemapped], 1))
+                previews[i] = np.concatenate([tonemapped[k] for k in PREVIEW_COLUMNS if k in tonemapped], 1)
+    return scores, previews
+
+
+def scored_metrics(scores: RelightScores, data: RelightData) -> dict:
+    """The metrics of ``scores`` (none under a lighting override: nothing was captured to compare)."""
     if data.lighting is not None:
-        return {"scored": f"no: lighting {data.lighting.entry['description']} was not captured"}, previews
-    return scores.metrics(), previews
+        return {"scored": f"no: lighting {data.lighting.entry['description']} was not captured"}
+    return scores.metrics()
 
 
 def load_relight_model(path: Path) -> tuple[rl.RelightModel, dict, Artifact]:
@@ -325,9 +341,9 @@ class RelightCommands:
             writer.timing["train_s"] = round(time.perf_counter() - started, 3)
             model.eval()
             validation, previews = evaluate(model, data, val_views, None, int(cfg.preview.frames))
-            writer.metrics.update({f"val_{k}": v for k, v in validation.items()})
+            writer.metrics.update({f"val_{k}": v for k, v in scored_metrics(validation, data).items()})
             if previews:
-                write_image(writer.path(PREVIEW_PNG), np.concatenate(previews, 0))
+                write_image(writer.path(PREVIEW_PNG), stack_rows([previews[i] for i in sorted(previews)]))
             extra = {"uv_resolution": int(net.uv_resolution), "sequence": data.sequence.name, "cameras": cameras,
                      "train_frames": frames[:-held].tolist(), "val_frames": frames[-held:].tolist()}
             write_model(writer.workdir, ModelPayload(rl.MODEL_STAGE, model.architecture(), model.state_dict(), extra,
@@ -345,23 +361,34 @@ class RelightCommands:
 
     def predict(self, capture_path: Path, meshes_path: Path, uvmaps_path: Path, model_path: Path,
                 character_spec: str, seq: str, all_cameras: bool, out: Path,
-                lighting: LightingOverride | None = None) -> Path:
+                lighting: LightingOverride | None = None, frame_range: FrameRange = FrameRange()) -> Path:
         model, net, model_artifact = load_relight_model(model_path)
         data, frames, inputs = self._load(capture_path, meshes_path, uvmaps_path, character_spec, seq, net, lighting)
         held_out = list(data.sequence.doc.get("held_out_cameras", []))
         cameras = training_cameras(data.capture, data.sequence) + held_out if all_cameras else held_out
         if not cameras:
             raise EgorelightError(f"sequence {seq!r} has no held-out cameras (use --cameras all)", capture_path)
-        views = [(int(f), c) for f in frames for c in cameras]
+        start, stop = frame_range.bounds(len(frames))  # a shard renders the views of its frames
+        views = [(int(f), c) for f in frames[start:stop] for c in cameras]
+        first_view = start * len(cameras)
         self.run.compute_device()
 
         def write(writer: ArtifactWriter, cfg: Config) -> None:
             if writer.single_file:
                 raise EgorelightError("a renders artifact is a directory: give --out a directory name", out)
-            metrics, previews = evaluate(model, data, views, writer, int(cfg.preview.frames), cfg.export == "ply")
-            writer.metrics.update({"sequence": seq, "cameras": cameras, "views": len(views), **metrics})
-            if previews:
-                write_image(writer.path(PREVIEW_PNG), np.concatenate(previews, 0))
+            shown = {p - first_view for p in preview_views(len(frames) * len(cameras), int(cfg.preview.frames))
+                     if first_view <= p < first_view + len(views)}
+            scores, previews = evaluate(model, data, views, writer, export_ply=cfg.export == "ply", preview_at=shown)
+            writer.metrics.update({"sequence": seq, "cameras": cameras, "views": len(views),
+                                   **scored_metrics(scores, data)})
+            rows = {"frame_ids": np.array([f for f, _ in views], np.int64), "camera": np.array([c for _, c in views]),
+                    **(scores.arrays() if lighting is None else {})}
+            writer.save_npz(SCORES_NPZ, rows, rows=sorted(rows), units={"psnr": "dB", "ssim": "x100"},
+                            description="per view (frame, camera): PSNR/SSIM of the render and its baselines "
+                                        "(NaN: an empty scoring region); the metrics are their means")
+            write_preview(writer, {first_view + i: image for i, image in previews.items()}, frame_range, PREVIEW_PNG)
+            if not frame_range.whole:
+                writer.extra["shard"] = frame_range.manifest(len(frames))
             writer.metrics["lighting"] = "the sequence's own" if lighting is None else lighting.entry["description"]
             writer.units.update({"psnr": "dB on the metric tone mapping (exposure 1, sRGB, clipped)", "ssim": "x100",
                                  "preview": ("captured | " if lighting is None else "") + "relit | Lambert | baked"})
@@ -370,4 +397,4 @@ class RelightCommands:
         sources = [lighting.source] if lighting is not None and lighting.source is not None else []
         return self.run.produce(out, "renders", write, inputs=inputs + [model_artifact], source_files=sources,
                                 options={"sequence": seq, "cameras": "all" if all_cameras else "held-out",
-                                         "lighting": light})
+                                         "lighting": light, **frame_range.key()})

@@ -21,19 +21,55 @@ from egorelight_cli.render.image_metrics import psnr, ssim, tonemap_for_metrics
 ROWS = {"": "render", "diffuse_only_": "diffuse", "lambert_": "lambert", "baked_": "baked"}
 
 
+SCORES_NPZ = "scores.npz"
+
+
 class RelightScores:
-    """Per-view PSNR/SSIM of the model and its baselines, averaged by :meth:`metrics`."""
+    """Per-view PSNR/SSIM of the model and its baselines (one row per :meth:`start_view`)."""
 
     def __init__(self):
-        self.values: dict[str, list[float]] = {}
+        self.views: list[dict[str, float]] = []
+
+    def start_view(self) -> None:
+        self.views.append({})
 
     def add(self, key: str, value: float) -> None:
-        self.values.setdefault(key, []).append(value)
+        self.views[-1][key] = value
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """Per-view rows by score name (NaN where a view has no such score: an empty region)."""
+        names = sorted({k for view in self.views for k in view})
+        return {k: np.array([view.get(k, np.nan) for view in self.views], np.float64) for k in names}
 
     def metrics(self) -> dict:
-        out = {key: float(np.nanmean(v)) for key, v in self.values.items()}
-        out.update({"lpips": None, "fid": None, "lpips_fid": "need pretrained AlexNet/Inception weights: not scored"})
-        return out
+        return relight_metrics(self.arrays())
+
+
+def relight_metrics(rows: dict[str, np.ndarray]) -> dict:
+    """Each score's mean over the views that have it (``rows``: :meth:`RelightScores.arrays`, or
+    the merged rows of frame shards), and ``null`` LPIPS/FID with the reason."""
+    out = {key: float(np.nanmean(v)) for key, v in rows.items()}
+    out.update({"lpips": None, "fid": None, "lpips_fid": "need pretrained AlexNet/Inception weights: not scored"})
+    return out
+
+
+def merged_metrics(root, manifests: list[dict]) -> dict:
+    """The metrics of merged frame shards (:func:`egorelight_cli.sharding.merge_parts`) from the
+    merged ``scores.npz``, as a single run computes them."""
+    from pathlib import Path
+
+    from egorelight_cli.io.npz import read_npz
+
+    rows, _ = read_npz(Path(root) / SCORES_NPZ, check_finite=False)
+    first = manifests[0]["metrics"]
+    metrics = {k: first[k] for k in ("sequence", "cameras", "lighting")}
+    metrics["views"] = int(len(rows["frame_ids"]))
+    if "scored" in first:
+        return {**metrics, "scored": first["scored"]}
+    return {**metrics, **relight_metrics({k: v for k, v in rows.items() if k not in VIEW_KEYS})}
+
+
+VIEW_KEYS = ("frame_ids", "camera")
 
 
 def tonemapped(render: GaussianRender, names) -> dict[str, torch.Tensor]:
