@@ -163,3 +163,17 @@ def test_random_crops_stay_inside_and_reach_the_borders():
         assert crop.shape[-2:] == (16, 16)
         covered[crop[0, 0, :, 0].long()] += 1
     assert covered[-1] > 0.25 * covered[16] and covered[0] > 0.25 * covered[16]
+
+
+def test_egodepth_frame_shards_merge_into_the_single_run(tiny_capture, oracle_calibration_artifact, trained_model,
+                                                         net_cloud, tmp_path):
+    from tiny_models import assert_shards_merge_into
+
+    args = ["egodepth", "--preset", "tiny", "--capture", str(tiny_capture), "--calibration",
+            str(oracle_calibration_artifact), "--model", str(trained_model), "--seq", "test"]
+    for count in (2, 4):
+        parts = [tmp_path / f"part{i}of{count}" for i in range(count)]
+        for i, part in enumerate(parts):
+            assert run_cli(*args, "--shard", f"{i}/{count}", "--out", str(part)) == 0
+        merged = assert_shards_merge_into(net_cloud, parts, tmp_path / f"merged{count}")
+        assert merged["metrics"]["sgbm_depth_absrel"] > 0  # both methods' rows merged

@@ -376,14 +376,16 @@ def train_egodepth(ctx: click.Context, capture: Path, calibration: Path, backbon
               help="Depth-Anything-V2 folder, when the model was trained with one.")
 @click.option("--seq", "--sequence", "seq", default="test", show_default=True, help="Sequence name.")
 @click.option("--out", required=True, type=click.Path(path_type=Path), help="Pointcloud artifact directory.")
+@frame_options
 @common_options
 @click.pass_context
 def egodepth_command(ctx: click.Context, capture: Path, calibration: Path, model_path: Path | None, method: str | None,
-                     backbone: Path | None, seq: str, out: Path) -> None:
+                     backbone: Path | None, seq: str, out: Path, frames: str | None, shard: str | None) -> None:
     """Ego fisheye images -> metric depth per view -> fused world point cloud with normals."""
     if method is not None:  # a config key, so it enters the cache key and the manifest
         _options(ctx).sets.append(f"predict.method={method}")
-    _egodepth_commands(ctx).predict(capture, calibration, model_path, seq, out, method, backbone)
+    _egodepth_commands(ctx).predict(capture, calibration, model_path, seq, out, method, backbone,
+                                    _frame_range(frames, shard))
 
 
 # ------------------------------------------------------------------------------- animate

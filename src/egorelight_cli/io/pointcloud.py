@@ -38,7 +38,8 @@ def save_pointcloud(writer, cloud: PointCloudSequence, name: str | None = None, 
     """Write ``cloud`` into an :class:`~egorelight_cli.artifacts.ArtifactWriter` (kind pointcloud)."""
     name = name or (writer.out.name if writer.single_file else POINTCLOUD_PAYLOAD)
     extra = {"fps": cloud.fps} if cloud.fps is not None else {}
-    return writer.save_npz(name, cloud.arrays(), frame_ids=cloud.frame_ids, units=dict(POINTCLOUD_UNITS),
+    arrays = cloud.arrays()
+    return writer.save_npz(name, arrays, frame_ids=cloud.frame_ids, units=dict(POINTCLOUD_UNITS), rows=sorted(arrays),
                            **extra, **meta)
 
 

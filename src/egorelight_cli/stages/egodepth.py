@@ -32,7 +32,7 @@ normals.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -388,43 +388,6 @@ def frame_pointcloud(views: Sequence[EgoView], ranges: dict, ray_maps: dict, siz
 
 
 # -------------------------------------------------------------------------------- evaluation
-@dataclass
-class DepthErrors:
-    """Accumulated per-pixel and per-point errors of one method."""
-
-    abs_rel: list = field(default_factory=list)
-    sq_err: list = field(default_factory=list)
-    covered: int = 0
-    total: int = 0
-    surface: list = field(default_factory=list)
-    constant_abs_rel: list = field(default_factory=list)
-
-    def add_depth(self, pred: np.ndarray, truth: np.ndarray, mask: np.ndarray, constant: float | None = None) -> None:
-        """Score range maps (H,W) inside ``mask``; ``constant``: also score predicting that range
-        everywhere on the same pixels (the baseline a trained network must beat)."""
-        have = mask & (pred > 0)
-        self.total += int(mask.sum())
-        self.covered += int(have.sum())
-        self.abs_rel.append(np.abs(pred[have] - truth[have]) / truth[have])
-        self.sq_err.append((pred[have] - truth[have]) ** 2)
-        if constant is not None:
-            self.constant_abs_rel.append(np.abs(constant - truth[have]) / truth[have])
-
-    def metrics(self, prefix: str) -> dict:
-        out = {f"{prefix}depth_coverage": self.covered / max(self.total, 1)}
-        if self.covered:
-            out[f"{prefix}depth_absrel"] = float(np.concatenate(self.abs_rel).mean())
-            out[f"{prefix}depth_rmse_cm"] = float(np.sqrt(np.concatenate(self.sq_err).mean()) * 100)
-            if self.constant_abs_rel:
-                out[f"{prefix}depth_absrel_constant_baseline"] = float(np.concatenate(self.constant_abs_rel).mean())
-        if self.surface:
-            d = np.concatenate(self.surface)
-            if d.size:
-                out[f"{prefix}point_to_surface_cm"] = float(d.mean() * 100)
-                out[f"{prefix}point_to_surface_median_cm"] = float(np.median(d) * 100)
-        return out
-
-
 class GroundTruth:
     """The true body surface per frame (``groundtruth/<seq>/meshes.npz``, any topology), for
     scoring only."""

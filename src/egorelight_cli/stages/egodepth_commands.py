@@ -26,6 +26,7 @@ from egorelight_cli.io.calibration import open_calibration
 from egorelight_cli.structures.calibration import Calibration
 from egorelight_cli.io.capture import Capture, frame_file, open_capture
 from egorelight_cli.pipeline import StageRun
+from egorelight_cli.sharding import FrameRange
 
 # torch and the stage module load only past the cache check, so an up-to-date run returns in
 # well under a second (importing torch alone takes seconds)
@@ -141,7 +142,8 @@ class EgodepthCommands:
 
     # ------------------------------------------------------------------------------ predict
     def predict(self, capture_path: Path, calibration_path: Path, model_path: Path | None, seq: str, out: Path,
-                method: str | None = None, backbone: Path | None = None) -> Path:
+                method: str | None = None, backbone: Path | None = None,
+                frame_range: FrameRange = FrameRange()) -> Path:
         capture, capture_artifact, calibration, calibration_artifact = load_inputs(capture_path, calibration_path, [seq])
         cfg = self.run.config()
         method = method or str(cfg.predict.method)
@@ -149,7 +151,7 @@ class EgodepthCommands:
         sequence = capture.sequence(seq)
         inputs = [capture_artifact, calibration_artifact]
         sources = [backbone / "config.json"] if backbone is not None else []
-        options = {"sequence": sequence.name}
+        options = {"sequence": sequence.name, **frame_range.key()}
         if method == "net":
             if model_path is None:
                 raise EgorelightError("egodepth --method net needs --model (a `train egodepth` artifact)")
@@ -180,17 +182,20 @@ class EgodepthCommands:
                 raise EgorelightError("a pointcloud artifact is a directory (it holds depth EXRs): give --out a directory",
                                       out)
             _predict_sequence(writer, cfg, capture, calibration, sequence, roles, frames, posed, method, model, masks,
-                              device, prior)
+                              device, prior, frame_range)
 
         return self.run.produce(out, "pointcloud", write, inputs=inputs, source_files=sources, options=options)
 
 
 def _predict_sequence(writer: ArtifactWriter, cfg: Config, capture: Capture, calibration: Calibration, sequence,
-                      roles, frames: np.ndarray, posed: np.ndarray, method: str, model, masks, device, prior) -> None:
+                      roles, frames: np.ndarray, posed: np.ndarray, method: str, model, masks, device, prior,
+                      frame_range: FrameRange) -> None:
     from egorelight_cli.stages import egodepth as ed
     from egorelight_cli.io.exr import write_exr
     from egorelight_cli.io.images import write_image
     from egorelight_cli.io.pointcloud import save_pointcloud
+    from egorelight_cli.sharding import write_preview
+    from egorelight_cli.stages.egodepth_scores import SCORES_NPZ, DepthScores, run_metrics
     from egorelight_cli.structures.pointcloud import PointCloudSequence
 
     settings = ed.PredictSettings.from_config(cfg)
@@ -198,23 +203,27 @@ def _predict_sequence(writer: ArtifactWriter, cfg: Config, capture: Capture, cal
     model = model.to(device) if model is not None else None
     sgbm = ed.SGBMDepth(capture, calibration, roles, cfg) if method == "sgbm" or bool(cfg.eval.compare_sgbm) else None
     truth = ed.GroundTruth(capture, sequence, float(cfg.eval.occluder_margin_m))
-    rng = np.random.default_rng(int(cfg.seed))
     P = int(cfg.pointcloud.points)
     k = int(cfg.pointcloud.normal_neighbours)
+    preview_at = np.linspace(0, len(frames) - 1, max(min(int(cfg.preview.frames), len(frames)), 1)).round().astype(int)
+    start, stop = frame_range.bounds(len(frames))
+    if not frame_range.whole:
+        writer.extra["shard"] = frame_range.manifest(len(frames))
+    frames, posed = frames[start:stop], posed[start:stop]
     T = len(frames)
     points = np.zeros((T, P, 3), np.float32)
     normals = np.zeros((T, P, 3), np.float32)
     valid = np.zeros((T, P), bool)
-    errors = {"": ed.DepthErrors()}
+    scores = {"": DepthScores(T, P)}
     if method == "net" and sgbm is not None:
-        errors["sgbm_"] = ed.DepthErrors()
+        scores["sgbm_"] = DepthScores(T, P)
     timing = {"depth_s": 0.0, "pointcloud_s": 0.0}
-    preview_rows, cloud_preview = [], None
-    preview_at = set(np.linspace(0, T - 1, max(min(int(cfg.preview.frames), T), 1)).round().astype(int).tolist())
+    preview_rows = {}
     for t in console.progress(range(T), total=T, desc=f"egodepth {sequence.name}"):
         f = int(frames[t])
         if not posed[t]:
             continue
+        rng = np.random.default_rng([int(cfg.seed), f])  # per frame: a frame's points do not depend on its shard
         views = [ed.load_view(capture, calibration, sequence, r, f) for r in roles]
         started = time.perf_counter()
         if method == "net":
@@ -232,42 +241,32 @@ def _predict_sequence(writer: ArtifactWriter, cfg: Config, capture: Capture, cal
             surface, truth_maps = truth.frame(f, views)
             distance = surface(points[t][valid[t]])
             constant = float(np.exp(float(model.log_range_mean))) if model is not None else None
-            _score(errors[""], ranges, truth_maps, distance, constant)
-            if "sgbm_" in errors:
+            scores[""].add_frame(t, ranges, truth_maps, distance, constant)
+            if "sgbm_" in scores:
                 other = sgbm(views, ray_maps, settings)
                 other_points, _, other_valid, _ = ed.frame_pointcloud(views, other, ray_maps, P, k, rng)
-                _score(errors["sgbm_"], other, truth_maps, surface(other_points[other_valid]))
-        if t in preview_at:
-            preview_rows.append(ed.depth_preview_row(views, ranges, truth_maps, int(cfg.preview.scale)))
-            if cloud_preview is None:
+                scores["sgbm_"].add_frame(t, other, truth_maps, surface(other_points[other_valid]))
+        if start + t in preview_at:
+            preview_rows[start + t] = ed.depth_preview_row(views, ranges, truth_maps, int(cfg.preview.scale))
+            if start + t == preview_at[0]:  # the point cloud of the first previewed frame
                 mesh = None
                 if truth.has(f):
                     i = int(np.nonzero(truth.frame_ids == f)[0][0])
                     mesh = (truth.vertices[i], truth.faces)
-                cloud_preview = ed.pointcloud_preview(points[t][valid[t]], normals[t][valid[t]], distance, mesh, int(cfg.preview.width),
-                                                      int(cfg.preview.height))
+                write_image(writer.path(POINTCLOUD_PREVIEW_PNG), ed.pointcloud_preview(
+                    points[t][valid[t]], normals[t][valid[t]], distance, mesh, int(cfg.preview.width),
+                    int(cfg.preview.height)))
     fps = sequence.fps if "fps" in sequence.doc else None
     save_pointcloud(writer, PointCloudSequence(points, normals, valid, frames, fps), method=method,
                     sequence=sequence.name, roles=list(roles))
-    if preview_rows:
-        width = max(r.shape[1] for r in preview_rows)
-        rows = [np.pad(r, ((0, 0), (0, width - r.shape[1]), (0, 0)), constant_values=255) for r in preview_rows]
-        write_image(writer.path(PREVIEW_PNG), np.concatenate(rows, axis=0))
-    if cloud_preview is not None:
-        write_image(writer.path(POINTCLOUD_PREVIEW_PNG), cloud_preview)
+    write_preview(writer, preview_rows, frame_range, PREVIEW_PNG)
+    rows = {"posed": posed, **({n: v for prefix, s in scores.items() for n, v in s.arrays(prefix).items()}
+                               if truth.available else {})}
+    writer.save_npz(SCORES_NPZ, rows, frame_ids=frames, rows=sorted(rows),
+                    description="per frame: the depth error sums and point-to-surface distances (m, NaN-padded) "
+                                "of each method, the metrics' source")
+    writer.metrics.update(run_metrics(rows, valid, method, sequence.name))
     done = int(posed.sum())
-    writer.metrics.update({"method": method, "sequence": sequence.name, "frames": T, "frames_without_pose": T - done,
-                           "points_per_frame": P, "mean_valid_points": float(valid.sum(axis=1)[posed].mean()) if done else 0.0})
-    if truth.available:
-        for prefix, e in errors.items():
-            writer.metrics.update(e.metrics(prefix))
     writer.timing.update({"depth_ms_per_frame": round(1000 * timing["depth_s"] / max(done, 1), 2),
                           "pointcloud_ms_per_frame": round(1000 * timing["pointcloud_s"] / max(done, 1), 2)})
     writer.units.update({"depth": "m (axial z, EXR channel Z)", "points": "m"})
-
-
-def _score(errors: "ed.DepthErrors", ranges: dict, truth_maps: dict, distance: np.ndarray,
-           constant: float | None = None) -> None:
-    for role, (true_range, mask) in truth_maps.items():
-        errors.add_depth(ranges[role], true_range, mask, constant)
-    errors.surface.append(distance)
