@@ -8,7 +8,12 @@
 PYTHON  ?= python3
 VENV    ?= .venv
 BIN     := $(VENV)/bin
-EGO     := $(BIN)/egorelight
+# SCHEDULER=slurm: every stage command runs as a Slurm job step (`srun`, one task with THREADS
+# cores, default 4); make keeps the DAG and with -jN keeps N jobs in flight (run it inside
+# `salloc` or on a login node). SRUN overrides the launcher line.
+SCHEDULER ?= local
+SRUN ?= srun --ntasks=1 --cpus-per-task=$(or $(THREADS),4) --job-name=egorelight
+EGO     := $(if $(filter slurm,$(SCHEDULER)),$(SRUN) )$(BIN)/egorelight
 SUBJECT ?= subjects/demo
 PRESET  ?= cpu
 SEQ     ?= test
@@ -69,6 +74,18 @@ $(PREVIEWS)/character.png: $(CHARACTER)
 CALIBRATION := $(SUBJECT)/calibration/manifest.json
 GT = $(if $(wildcard $(SUBJECT)/capture/groundtruth/$(1)),--gt $(SUBJECT)/capture/groundtruth/$(1))
 
+# Frame shards (issue 22): with SHARDS=N > 1 the per-frame stages egopose, egodepth and relight run
+# as N shards (`--shard i/N`, partial artifacts under $(SUBJECT)/shards/) that `egorelight merge`
+# joins into the artifact one run writes; `make -jN` runs the shards side by side, and
+# `bench/slurm.py` submits the same rules as a Slurm job array. SHARD_SEQ/SHARD_SPEC read a part's
+# stem `<seq>/<i>of<N>`.
+SHARDS ?= 1
+SHARD_PARTS = $(foreach i,$(shell seq 0 $$(($(SHARDS) - 1))),$(SUBJECT)/shards/$(1)/$(i)of$(SHARDS)/manifest.json)
+SHARD_SEQ = $(word 1,$(subst /, ,$(1)))
+SHARD_SPEC = --shard $(subst of,/,$(word 2,$(subst /, ,$(1))))
+MERGE = $(EGO) merge $(1) --out $(2)
+.SECONDEXPANSION:
+
 # ---------------------------------------------------------------- calibrate
 $(CALIBRATION): $(CAPTURE)
 	$(EGO) $(EGOFLAGS) calibrate --capture $(SUBJECT)/capture --out $(SUBJECT)/calibration
@@ -84,9 +101,18 @@ $(EGOPOSE_MODEL): $(CAPTURE) $(CALIBRATION)
 $(SUBJECT)/models/egopose_nojitter/manifest.json: $(CAPTURE) $(CALIBRATION)
 	$(EGO) $(EGOFLAGS) train egopose --no-jitter $(EGO_INPUTS) --out $(SUBJECT)/models/egopose_nojitter
 
+# keypoints of a sequence: $(1) sequence, $(2) output, $(3) extra options (a shard)
+EGOPOSE_OF = $(EGO) $(EGOFLAGS) egopose $(EGO_INPUTS) --model $(SUBJECT)/models/egopose --sequence $(1) $(3) --out $(2)
+
+ifeq ($(SHARDS),1)
 $(SUBJECT)/keypoints/%/manifest.json: $(CAPTURE) $(CALIBRATION) $(EGOPOSE_MODEL)
-	$(EGO) $(EGOFLAGS) egopose $(EGO_INPUTS) --model $(SUBJECT)/models/egopose --sequence $* \
-		--out $(SUBJECT)/keypoints/$*
+	$(call EGOPOSE_OF,$*,$(SUBJECT)/keypoints/$*)
+else
+$(SUBJECT)/keypoints/%/manifest.json: $$(call SHARD_PARTS,keypoints/$$*)
+	$(call MERGE,$(^D),$(@D))
+$(SUBJECT)/shards/keypoints/%/manifest.json: $(CAPTURE) $(CALIBRATION) $(EGOPOSE_MODEL)
+	$(call EGOPOSE_OF,$(call SHARD_SEQ,$*),$(@D),$(call SHARD_SPEC,$*))
+endif
 
 .PHONY: egopose-ablation
 egopose-ablation: $(EGOPOSE_MODEL) $(SUBJECT)/models/egopose_nojitter/manifest.json
@@ -126,9 +152,19 @@ EGODEPTH_METHOD ?= net
 $(EGODEPTH_MODEL): $(CAPTURE) $(CALIBRATION)
 	$(EGO) $(EGOFLAGS) train egodepth $(EGO_INPUTS) --out $(SUBJECT)/models/egodepth
 
+# point clouds of a sequence: $(1) sequence, $(2) output, $(3) extra options (a shard)
+EGODEPTH_OF = $(EGO) $(EGOFLAGS) egodepth $(EGO_INPUTS) --model $(SUBJECT)/models/egodepth \
+	--method $(EGODEPTH_METHOD) --seq $(1) $(3) --out $(2)
+
+ifeq ($(SHARDS),1)
 $(SUBJECT)/pointcloud/%/manifest.json: $(CAPTURE) $(CALIBRATION) $(EGODEPTH_MODEL)
-	$(EGO) $(EGOFLAGS) egodepth $(EGO_INPUTS) --model $(SUBJECT)/models/egodepth --method $(EGODEPTH_METHOD) \
-		--seq $* --out $(SUBJECT)/pointcloud/$*
+	$(call EGODEPTH_OF,$*,$(SUBJECT)/pointcloud/$*)
+else
+$(SUBJECT)/pointcloud/%/manifest.json: $$(call SHARD_PARTS,pointcloud/$$*)
+	$(call MERGE,$(^D),$(@D))
+$(SUBJECT)/shards/pointcloud/%/manifest.json: $(CAPTURE) $(CALIBRATION) $(EGODEPTH_MODEL)
+	$(call EGODEPTH_OF,$(call SHARD_SEQ,$*),$(@D),$(call SHARD_SPEC,$*))
+endif
 
 # ---------------------------------------------------------------- animate (Sec. depth-conditioned animatable avatar)
 # Trained on the mocap motion + ego point cloud of ANIMATE_TRAIN_SEQ; the depth-agnostic student is
@@ -204,13 +240,22 @@ $(RELIGHT_MODEL): $(RELIGHT_TRAIN_INPUTS)
 	$(call TRAIN_RELIGHT,,$(SUBJECT)/models/relight)
 
 # relit renders of meshes + their uvmaps: $(1) meshes, $(2) uvmaps, $(3) sequence, $(4) output,
-# $(5) the relight model (default models/relight)
+# $(5) the relight model (default models/relight), $(6) extra options (a shard)
 RELIGHT_OF = $(EGO) $(EGOFLAGS) relight --capture $(SUBJECT)/capture --meshes $(1) --uvmaps $(2) \
-	--model $(or $(5),$(SUBJECT)/models/relight) --character $(SUBJECT)/character --seq $(3) --out $(4)
+	--model $(or $(5),$(SUBJECT)/models/relight) --character $(SUBJECT)/character --seq $(3) $(6) --out $(4)
 
+ifeq ($(SHARDS),1)
 $(SUBJECT)/renders/%/manifest.json: $(SUBJECT)/meshes/%/manifest.json $(SUBJECT)/uvmaps/%/manifest.json \
 		$(RELIGHT_MODEL) $(CHARACTER) $(CAPTURE)
 	$(call RELIGHT_OF,$(SUBJECT)/meshes/$*,$(SUBJECT)/uvmaps/$*,$*,$(SUBJECT)/renders/$*)
+else
+$(SUBJECT)/renders/%/manifest.json: $$(call SHARD_PARTS,renders/$$*)
+	$(call MERGE,$(^D),$(@D))
+$(SUBJECT)/shards/renders/%/manifest.json: $(SUBJECT)/meshes/$$(call SHARD_SEQ,$$*)/manifest.json \
+		$(SUBJECT)/uvmaps/$$(call SHARD_SEQ,$$*)/manifest.json $(RELIGHT_MODEL) $(CHARACTER) $(CAPTURE)
+	$(call RELIGHT_OF,$(SUBJECT)/meshes/$(call SHARD_SEQ,$*),$(SUBJECT)/uvmaps/$(call SHARD_SEQ,$*),\
+		$(call SHARD_SEQ,$*),$(@D),,$(call SHARD_SPEC,$*))
+endif
 
 # The same avatar and protocol on better meshes (issue 18's rows that show what tracking costs):
 # renders_studio/<seq>: the meshes a lightstage tracks (its markerless mocap -> the student), no

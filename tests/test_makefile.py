@@ -36,3 +36,23 @@ def test_relight_ablation_trains_each_variant_and_prints_one_table(tmp_path):
         assert f"relight_{name} --character" in out.replace("  ", " ")
     table = next(line for line in out.splitlines() if "egorelight_cli.report.table" in line)
     assert table.count("manifest.json") == 5
+
+
+def test_sharded_stages_run_as_shards_and_merge(tmp_path):
+    out = _dry_run(tmp_path, "SHARDS=3", f"{tmp_path}/renders/test/manifest.json")
+    for folder, command in (("keypoints", "egopose"), ("pointcloud", "egodepth"), ("renders", "relight")):
+        for i in range(3):
+            line = next(line for line in out.splitlines() if f"--out {tmp_path}/shards/{folder}/test/{i}of3" in line)
+            assert f" {command} " in line and f"--shard {i}/3" in line
+        merge = next(line for line in out.splitlines() if f"merge {tmp_path}/shards/{folder}/test/0of3" in line)
+        assert merge.endswith(f"--out {tmp_path}/{folder}/test")
+        assert out.index(f"--out {tmp_path}/shards/{folder}/test/2of3") < out.index(merge)
+    assert "--shard" not in _dry_run(tmp_path, f"{tmp_path}/renders/test/manifest.json")  # SHARDS=1: one run
+
+
+def test_slurm_mode_runs_every_stage_command_through_srun(tmp_path):
+    out = _dry_run(tmp_path, "SCHEDULER=slurm", "SHARDS=2", "THREADS=8", f"{tmp_path}/keypoints/test/manifest.json")
+    commands = [line for line in out.splitlines() if "bin/egorelight" in line]
+    assert commands and all(line.startswith("srun --ntasks=1 --cpus-per-task=8 --job-name=egorelight ")
+                            for line in commands)
+    assert sum("--shard" in line for line in commands) == 2
