@@ -117,7 +117,8 @@ def rank_share(batch: T) -> T:
     n = len(batch)
     if n % w.size:
         raise EgorelightError(f"a global batch of {n} does not divide among {w.size} processes: set the stage's "
-                              f"train batch to a multiple of {w.size} (--set train.batch=...)")
+                              f"batch (train.batch, or train.views_per_step for geolift and relight) to a multiple "
+                              f"of {w.size}")
     share = n // w.size
     return batch[w.rank * share:(w.rank + 1) * share]
 
