@@ -74,7 +74,7 @@ $(PREVIEWS)/character.png: $(CHARACTER)
 CALIBRATION := $(SUBJECT)/calibration/manifest.json
 GT = $(if $(wildcard $(SUBJECT)/capture/groundtruth/$(1)),--gt $(SUBJECT)/capture/groundtruth/$(1))
 
-# Frame shards (issue 22): with SHARDS=N > 1 the per-frame stages egopose, egodepth and relight run
+# Frame shards (issue 22): with SHARDS=N > 1 the per-frame stages egopose, egodepth, geolift and relight run
 # as N shards (`--shard i/N`, partial artifacts under $(SUBJECT)/shards/) that `egorelight merge`
 # joins into the artifact one run writes; `make -jN` runs the shards side by side, and
 # `bench/slurm.py` submits the same rules as a Slurm job array. SHARD_SEQ/SHARD_SPEC read a part's
@@ -214,10 +214,18 @@ $(GEOLIFT_MODEL): $(CAPTURE) $(CHARACTER) $(foreach s,$(GEOLIFT_TRAIN_SEQS),$(SU
 
 # geolift of meshes: $(1) meshes, $(2) sequence, $(3) output
 GEOLIFT_OF = $(EGO) $(EGOFLAGS) geolift --meshes $(1) --model $(SUBJECT)/models/geolift \
-	--character $(SUBJECT)/character --capture $(SUBJECT)/capture --seq $(2) --out $(3)
+	--character $(SUBJECT)/character --capture $(SUBJECT)/capture --seq $(2) $(4) --out $(3)
 
+ifeq ($(SHARDS),1)
 $(SUBJECT)/uvmaps/%/manifest.json: $(SUBJECT)/meshes/%/manifest.json $(GEOLIFT_MODEL) $(CHARACTER) $(CAPTURE)
 	$(call GEOLIFT_OF,$(SUBJECT)/meshes/$*,$*,$(SUBJECT)/uvmaps/$*)
+else
+$(SUBJECT)/uvmaps/%/manifest.json: $$(call SHARD_PARTS,uvmaps/$$*)
+	$(call MERGE,$(^D),$(@D))
+$(SUBJECT)/shards/uvmaps/%/manifest.json: $(SUBJECT)/meshes/$$(call SHARD_SEQ,$$*)/manifest.json $(GEOLIFT_MODEL) \
+		$(CHARACTER) $(CAPTURE)
+	$(call GEOLIFT_OF,$(SUBJECT)/meshes/$(call SHARD_SEQ,$*),$(call SHARD_SEQ,$*),$(@D),$(call SHARD_SPEC,$*))
+endif
 
 # ---------------------------------------------------------------- relight (Sec. relightable avatar)
 # DiffuseNet + SpecularNet train on the HDR-lit frames of RELIGHT_TRAIN_SEQ (student meshes and their

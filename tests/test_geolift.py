@@ -194,3 +194,17 @@ def test_geolift_errors_are_one_line(tiny_capture, skinned_meshes, trained_geoli
     result = run("--preset", "tiny", "geolift", "--meshes", meshes_path, "--model", tiny_capture, "--out", tmp_path / "b")
     assert result.returncode == 2 and len(result.stderr.strip().splitlines()) == 1
     assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+
+
+def test_geolift_frame_shards_merge_into_the_single_run(tiny_capture, skinned_meshes, trained_geolift, tmp_path):
+    from tiny_models import assert_shards_merge_into, cli_exit_code
+
+    args = ["--preset", "tiny", "-q", "geolift", "--meshes", skinned_meshes / "test.npz", "--model", trained_geolift,
+            "--capture", tiny_capture, "--seq", "test"]
+    assert cli_exit_code(*args, "--out", tmp_path / "whole") == 0
+    for count in (2, 4):
+        parts = [tmp_path / f"part{i}of{count}" for i in range(count)]
+        for i, part in enumerate(parts):
+            assert cli_exit_code(*args, "--shard", f"{i}/{count}", "--out", part) == 0
+        merged = assert_shards_merge_into(tmp_path / "whole", parts, tmp_path / f"merged{count}")
+        assert merged["metrics"]["normal_deg"] is not None

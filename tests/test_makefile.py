@@ -40,7 +40,8 @@ def test_relight_ablation_trains_each_variant_and_prints_one_table(tmp_path):
 
 def test_sharded_stages_run_as_shards_and_merge(tmp_path):
     out = _dry_run(tmp_path, "SHARDS=3", f"{tmp_path}/renders/test/manifest.json")
-    for folder, command in (("keypoints", "egopose"), ("pointcloud", "egodepth"), ("renders", "relight")):
+    for folder, command in (("keypoints", "egopose"), ("pointcloud", "egodepth"), ("uvmaps", "geolift"),
+                            ("renders", "relight")):
         for i in range(3):
             line = next(line for line in out.splitlines() if f"--out {tmp_path}/shards/{folder}/test/{i}of3" in line)
             assert f" {command} " in line and f"--shard {i}/3" in line

@@ -476,12 +476,13 @@ def train_geolift(ctx: click.Context, capture: Path, meshes_paths: tuple[Path, .
               help="Capture: the sequence's lighting (rho, chi maps) and, when present, its ground truth.")
 @click.option("--seq", "--sequence", "seq", default="test", show_default=True, help="Sequence of the meshes.")
 @click.option("--out", required=True, type=click.Path(path_type=Path), help="uvmaps artifact directory.")
+@frame_options
 @common_options
 @click.pass_context
 def geolift_command(ctx: click.Context, meshes_path: Path, model_path: Path, character: str, capture: Path | None,
-                    seq: str, out: Path) -> None:
+                    seq: str, out: Path, frames: str | None, shard: str | None) -> None:
     """Tracked meshes -> per-frame UV normal map, flat-lit texture and lighting features (uvmaps)."""
-    _geolift_commands(ctx).predict(meshes_path, model_path, character, capture, seq, out)
+    _geolift_commands(ctx).predict(meshes_path, model_path, character, capture, seq, out, _frame_range(frames, shard))
 
 
 # ------------------------------------------------------------------------------- relight

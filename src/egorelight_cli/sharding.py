@@ -109,7 +109,7 @@ PREVIEW_TILES = "preview_tiles"
 #: per shardable stage, the module whose ``merged_metrics(root, part_manifests)`` computes the merged
 #: artifact's metrics from its merged payloads (as the stage's single run does)
 MERGED_METRICS = {"egopose": "egorelight_cli.stages.egopose_scores", "relight": "egorelight_cli.stages.relight_eval",
-                  "egodepth": "egorelight_cli.stages.egodepth_scores"}
+                  "egodepth": "egorelight_cli.stages.egodepth_scores", "geolift": "egorelight_cli.stages.geolift_eval"}
 SHARD_OPTIONS = ("frames", "shard")
 
 

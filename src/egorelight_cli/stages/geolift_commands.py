@@ -33,6 +33,7 @@ from egorelight_cli.io.mesh_sequence import load_meshes
 from egorelight_cli.structures.mesh_sequence import MeshSequence
 from egorelight_cli.nn.geolift_net import GeoLiftNet
 from egorelight_cli.pipeline import StageRun
+from egorelight_cli.sharding import FrameRange
 from egorelight_cli.render.raster import rasterize_uv
 from egorelight_cli.stages import geolift as gl
 from egorelight_cli.structures.character import Character
@@ -166,7 +167,7 @@ class GeoliftCommands:
 
     # ------------------------------------------------------------------------------ predict
     def predict(self, meshes_path: Path, model_path: Path, character_spec: str, capture_path: Path | None,
-                seq: str, out: Path) -> Path:
+                seq: str, out: Path, frame_range: FrameRange = FrameRange()) -> Path:
         from egorelight_cli.stages.character_commands import character_sources, load_character
 
         character, character_artifact = load_character(character_spec)
@@ -186,10 +187,10 @@ class GeoliftCommands:
             if writer.single_file:
                 raise EgorelightError("a uvmaps artifact is a directory (it holds EXR maps): give --out a directory",
                                       out)
-            write_uvmaps(writer, cfg, model, extra, character, meshes, capture, sequence)
+            write_uvmaps(writer, cfg, model, extra, character, meshes, capture, sequence, frame_range)
 
         return self.run.produce(out, "uvmaps", write, inputs=inputs, source_files=sources,
-                                options={"sequence": seq if capture is not None else None})
+                                options={"sequence": seq if capture is not None else None, **frame_range.key()})
 
 
 def map_path(frame_id: int) -> str:

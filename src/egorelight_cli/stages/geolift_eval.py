@@ -130,24 +130,28 @@ class GeoLiftTruth:
         return normals, self.texture[row][texel].astype(np.float64), distance
 
 
+SCORES_NPZ = "scores.npz"
+SCORE_KEYS = ("normal_deg", "normal_deg_coarse", "texture_l1", "texture_l1_mean_texture", "surface_distance_median_mm",
+              "normal_deg_uv", "normal_deg_uv_coarse", "texture_l1_uv", "texture_l1_uv_mean_texture")
+
+
 class GeoLiftScores:
-    """Accumulates per-frame errors of the prediction and of the baselines (see the module docstring)."""
+    """Per-frame errors of the prediction and of the baselines (see the module docstring), one row
+    per scored frame; :meth:`arrays` are the rows of ``scores.npz`` (NaN: not scored)."""
 
     def __init__(self):
-        self.rows: dict[str, list[float]] = {key: [] for key in (
-            "normal_deg", "normal_deg_coarse", "texture_l1", "texture_l1_mean_texture", "surface_distance_median_mm",
-            "normal_deg_uv", "normal_deg_uv_coarse", "texture_l1_uv", "texture_l1_uv_mean_texture")}
+        self.frame_ids: list[int] = []
+        self.rows: dict[str, list[float]] = {key: [] for key in SCORE_KEYS}
 
-    def _add(self, suffix: str, keep: np.ndarray, texels, truth_normals, truth_texture, maps: dict) -> None:
+    def _add(self, values: dict, suffix: str, keep: np.ndarray, texels, truth_normals, truth_texture,
+             maps: dict) -> None:
         if not keep.any():
             return
-        self.rows[f"normal_deg{suffix}"].append(float(angle_deg(texels(maps["normals"])[keep], truth_normals[keep]).mean()))
-        self.rows[f"normal_deg{suffix}_coarse"].append(
-            float(angle_deg(texels(maps["coarse"])[keep], truth_normals[keep]).mean()))
+        values[f"normal_deg{suffix}"] = float(angle_deg(texels(maps["normals"])[keep], truth_normals[keep]).mean())
+        values[f"normal_deg{suffix}_coarse"] = float(angle_deg(texels(maps["coarse"])[keep], truth_normals[keep]).mean())
         if truth_texture is not None:
             for key, name in (("texture", ""), ("mean_texture", "_mean_texture")):
-                error = np.abs(texels(maps[key])[keep] - truth_texture[keep]).mean()
-                self.rows[f"texture_l1{suffix}{name}"].append(float(error))
+                values[f"texture_l1{suffix}{name}"] = float(np.abs(texels(maps[key])[keep] - truth_texture[keep]).mean())
 
     def add(self, truth: GeoLiftTruth, frame_id: int, points: np.ndarray, normals: np.ndarray, coarse: np.ndarray,
             texture: np.ndarray, mean_texture: np.ndarray) -> None:
@@ -159,13 +163,48 @@ class GeoLiftScores:
         def texels(m):
             return np.moveaxis(m, 0, -1)[coverage]
 
+        values: dict[str, float] = {}
         truth_normals, truth_texture, valid = truth.frame(frame_id)
-        self._add("_uv", valid, texels, truth_normals, truth_texture, maps)
+        self._add(values, "_uv", valid, texels, truth_normals, truth_texture, maps)
         surface = truth.at_surface(frame_id, points)
         if surface is not None:
             truth_normals, truth_texture, distance = surface
-            self._add("", truth.faithful, texels, truth_normals, truth_texture, maps)
-            self.rows["surface_distance_median_mm"].append(float(np.median(distance[truth.faithful]) * 1000))
+            self._add(values, "", truth.faithful, texels, truth_normals, truth_texture, maps)
+            values["surface_distance_median_mm"] = float(np.median(distance[truth.faithful]) * 1000)
+        self.frame_ids.append(int(frame_id))
+        for key in SCORE_KEYS:
+            self.rows[key].append(values.get(key, np.nan))
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        return {"frame_ids": np.array(self.frame_ids, np.int64),
+                **{key: np.array(values, np.float64) for key, values in self.rows.items()}}
 
     def metrics(self) -> dict:
-        return {key: float(np.mean(values)) if values else None for key, values in self.rows.items()}
+        return geolift_metrics(self.arrays())
+
+
+def geolift_metrics(rows: dict[str, np.ndarray]) -> dict:
+    """Each score's mean over the frames that have it (None where none has), from the rows of
+    ``scores.npz`` (a whole run's or merged frame shards')."""
+    out = {}
+    for key in SCORE_KEYS:
+        values = rows[key][np.isfinite(rows[key])]
+        out[key] = float(values.mean()) if values.size else None
+    return out
+
+
+def merged_metrics(root, manifests: list[dict]) -> dict:
+    """The metrics of merged frame shards (:func:`egorelight_cli.sharding.merge_parts`): counts
+    summed over the parts, the scores from the merged ``scores.npz``, as a single run computes them."""
+    from pathlib import Path
+
+    from egorelight_cli.io.npz import read_npz
+
+    first = manifests[0]["metrics"]
+    metrics = {k: v for k, v in first.items() if k not in SCORE_KEYS}
+    for key in ("frames", "frames_with_lighting_features"):
+        metrics[key] = sum(int(m["metrics"][key]) for m in manifests)
+    if all(key in first for key in SCORE_KEYS):
+        rows, _ = read_npz(Path(root) / SCORES_NPZ, check_finite=False)
+        metrics.update(geolift_metrics(rows))
+    return metrics

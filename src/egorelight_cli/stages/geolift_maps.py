@@ -16,7 +16,7 @@ from egorelight_cli.artifacts import ArtifactWriter
 from egorelight_cli.config import Config
 from egorelight_cli.io.capture import Capture, SequenceInfo
 from egorelight_cli.io.exr import write_exr_layers
-from egorelight_cli.io.images import tonemap, write_image
+from egorelight_cli.io.images import tonemap
 from egorelight_cli.structures.mesh_sequence import MeshSequence
 from egorelight_cli.nn.geolift_net import GeoLiftNet
 from egorelight_cli.render.lighting import CaptureEnvmaps, light_intensities
@@ -24,7 +24,8 @@ from egorelight_cli.render.lightstage import LightStage
 from egorelight_cli.render.raster import rasterize_uv
 from egorelight_cli.render.uv_features import lighting_feature_maps, texel_map, texel_surface
 from egorelight_cli.stages import geolift as gl
-from egorelight_cli.stages.geolift_eval import GeoLiftScores, GeoLiftTruth
+from egorelight_cli.sharding import FrameRange, write_preview
+from egorelight_cli.stages.geolift_eval import SCORES_NPZ, GeoLiftScores, GeoLiftTruth
 from egorelight_cli.structures.character import Character
 
 PREVIEW_TILE = 128  # pixels per UV map in the preview
@@ -43,8 +44,10 @@ def _texture_image(maps: np.ndarray, coverage: np.ndarray) -> np.ndarray:
 
 
 def write_uvmaps(writer: ArtifactWriter, cfg: Config, model: GeoLiftNet, extra: dict, character: Character,
-                 meshes: MeshSequence, capture: Capture | None, sequence: SequenceInfo | None) -> None:
-    """Run GeoLift on every mesh frame and write maps, features, metrics and the preview."""
+                 meshes: MeshSequence, capture: Capture | None, sequence: SequenceInfo | None,
+                 frame_range: FrameRange = FrameRange()) -> None:
+    """Run GeoLift on the mesh frames of ``frame_range`` (all by default) and write maps, features,
+    per-frame scores, metrics and the preview (or, for a shard, its preview tiles)."""
     from egorelight_cli.stages.geolift_commands import PREVIEW_PNG, map_path
 
     raster = rasterize_uv(character.face_uvs, int(extra["uv_resolution"]))
@@ -62,9 +65,12 @@ def write_uvmaps(writer: ArtifactWriter, cfg: Config, model: GeoLiftNet, extra: 
     scores = GeoLiftScores()
     T = meshes.num_frames
     preview_at = set(np.linspace(0, T - 1, max(min(int(cfg.preview.frames), T), 1)).round().astype(int).tolist())
-    rows, timing = [], {"network_s": 0.0, "features_s": 0.0}
+    start, stop = frame_range.bounds(T)  # the network reads neighbouring coarse maps: all T are computed
+    if not frame_range.whole:
+        writer.extra["shard"] = frame_range.manifest(T)
+    rows, timing = {}, {"network_s": 0.0, "features_s": 0.0}
     featured = 0
-    for t in console.progress(range(T), total=T, desc="geolift"):
+    for t in console.progress(range(start, stop), total=stop - start, desc="geolift"):
         f = int(meshes.frame_ids[t])
         started = time.perf_counter()
         normals, texture = gl.predict_maps(model, coarse, t)
@@ -90,12 +96,14 @@ def write_uvmaps(writer: ArtifactWriter, cfg: Config, model: GeoLiftNet, extra: 
                      _texture_image(texture, coverage)]
             if truth_normals is not None:
                 tiles.append(_normal_image(np.moveaxis(texel_map(coverage, truth_normals), -1, 0), coverage))
-            rows.append(np.concatenate(tiles, axis=1))
-    if rows:
-        width = max(r.shape[1] for r in rows)
-        write_image(writer.path(PREVIEW_PNG),
-                    np.concatenate([np.pad(r, ((0, 0), (0, width - r.shape[1]), (0, 0)), constant_values=255)
-                                    for r in rows], axis=0))
+            rows[t] = np.concatenate(tiles, axis=1)
+    write_preview(writer, rows, frame_range, PREVIEW_PNG)
+    T = stop - start
+    if truth is not None:
+        arrays = scores.arrays()
+        writer.save_npz(SCORES_NPZ, arrays, rows=sorted(arrays), units={"normal_deg": "degrees"},
+                        description="per scored frame: the errors of the maps and of their baselines (NaN: not "
+                                    "scored), the metrics' source")
     writer.metrics.update({"frames": T, "sequence": sequence.name if sequence is not None else None,
                            "flat_scale": float(extra.get("flat_scale", 1.0)),
                            "uv_resolution": int(extra["uv_resolution"]), "frames_with_lighting_features": featured,
