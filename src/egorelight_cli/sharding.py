@@ -6,8 +6,8 @@ frames (reading whatever context frames its temporal window needs) and writes a 
 artifact** of the stage's kind. Its manifest's ``shard`` entry says which frames it holds and of
 how many, and its payloads are exactly the single run's payloads restricted to those frames:
 
-* per-frame arrays in npz files (rows along the first axis, listed by ``frame_ids`` in the npz
-  metadata), and per-frame files (``<camera>/<frame>.exr``, ``depth/<role>/<frame>.exr``);
+* per-frame arrays in npz files (rows along the first axis; the npz metadata's ``rows`` names
+  them), and per-frame files (``<camera>/<frame>.exr``, ``depth/<role>/<frame>.exr``);
 * ``scores.npz``: per-record score statistics (a record is a frame, or a frame and camera), from
   which the stage computes its ground-truth metrics, so that the metrics of the whole sequence are
   a function of the concatenated records;
@@ -23,12 +23,21 @@ single run's.
 
 from __future__ import annotations
 
+import filecmp
+import importlib
 import re
+import shutil
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
+from egorelight_cli import console
+from egorelight_cli.artifacts import ArtifactWriter, cache_key, is_up_to_date, open_artifact
 from egorelight_cli.errors import EgorelightError
+from egorelight_cli.io.images import read_image, write_image
+from egorelight_cli.io.npz import read_npz, write_npz
+from egorelight_cli.outputs import check_output
 
 FRAMES_PATTERN = re.compile(r"^\s*(-?\d*)\s*:\s*(-?\d*)\s*$")
 SHARD_PATTERN = re.compile(r"^\s*(\d+)\s*/\s*(\d+)\s*$")
@@ -116,8 +125,6 @@ SHARD_OPTIONS = ("frames", "shard")
 def write_preview(writer, rows: dict[int, np.ndarray], frame_range: FrameRange, name: str = "preview.png") -> None:
     """A whole run's preview ``name``: the rows (position -> (H,W,3) uint8) stacked in position
     order; a shard's: each row as ``preview_tiles/<position>.png`` for :func:`merge_parts`."""
-    from egorelight_cli.io.images import write_image
-
     if frame_range.whole:
         if rows:
             write_image(writer.path(name), stack_rows([rows[p] for p in sorted(rows)]))
@@ -145,8 +152,6 @@ def _base_config(manifest: dict) -> dict:
 
 def _check_parts(parts) -> list:
     """The parts sorted by their first frame; one stage run's shards covering its frames once."""
-    from egorelight_cli.errors import EgorelightError
-
     for part in parts:
         if part.single_file:
             raise EgorelightError("merge joins directory artifacts (shards of a per-frame stage)", part.path)
@@ -182,9 +187,6 @@ def _check_parts(parts) -> list:
 def _merge_npz(paths: list, target) -> None:
     """Concatenate the row arrays (``rows`` in the npz metadata) of ``paths`` in order; every other
     array and the metadata (but ``frame_ids``) must agree."""
-    from egorelight_cli.errors import EgorelightError
-    from egorelight_cli.io.npz import read_npz, write_npz
-
     loaded = [read_npz(p, check_finite=False) for p in paths]
     arrays, meta = loaded[0]
     rows = meta.get("rows")
@@ -208,17 +210,6 @@ def _merge_npz(paths: list, target) -> None:
 
 def merge_parts(paths, out, force: bool = False, preview_name: str = "preview.png"):
     """Join frame shards ``paths`` into ``out`` (see the module docstring); returns ``out``."""
-    import filecmp
-    import importlib
-    import shutil
-    from pathlib import Path
-
-    from egorelight_cli import console
-    from egorelight_cli.artifacts import ArtifactWriter, cache_key, is_up_to_date, open_artifact
-    from egorelight_cli.errors import EgorelightError
-    from egorelight_cli.io.images import read_image
-    from egorelight_cli.outputs import check_output
-
     out = Path(out)
     parts = _check_parts([open_artifact(p) for p in paths])
     first = parts[0].manifest
@@ -247,8 +238,6 @@ def merge_parts(paths, out, force: bool = False, preview_name: str = "preview.pn
         writer.extra["parts"] = [{"path": str(p.path), "digest": p.digest, "shard": p.manifest["shard"]} for p in parts]
         tiles = sorted(name for name in files if name.startswith(f"{PREVIEW_TILES}/"))
         if tiles:
-            from egorelight_cli.io.images import write_image
-
             write_image(writer.path(preview_name), stack_rows([read_image(files[name][0]) for name in tiles]))
         for name, copies in files.items():
             if name in tiles:
