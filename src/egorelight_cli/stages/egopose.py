@@ -522,8 +522,11 @@ class Prediction:
 
 
 def predict(net: EgoPoseNet, frames: EgoFrames, rig: RigGeometry, confidence_sigma_m: float,
-            batch: int = 16) -> Prediction:
-    """Keypoints for every frame of ``frames`` (see the module docstring)."""
+            batch: int = 1) -> Prediction:
+    """Keypoints for every frame of ``frames`` (see the module docstring). ``batch`` frames per
+    forward pass; the default, one, makes a frame's estimate independent of its neighbours in the
+    batch (the float rounding of batched convolutions differs with the batch), so that frame
+    shards reproduce a single run byte for byte."""
     net.eval()
     H = torch.tensor(frames.T_world_from_hmd, dtype=torch.float32)
     fused, disagreement, pixels = [], [], []
