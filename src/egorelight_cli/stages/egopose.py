@@ -364,7 +364,7 @@ def train_egopose(frames: EgoFrames, mocap: Keypoints, rig: RigGeometry, setting
     joint_weights = settings.joint_weights()
     images = as_float_images(data.images)
     jitter_on = bool(train_cfg.colour_jitter)
-    batch = min(int(train_cfg.batch), len(rows))
+    batch = int(train_cfg.batch)  # drawn with replacement; not clamped, so it stays divisible among torchrun ranks
     steps = int(train_cfg.steps)
     lr = float(train_cfg.lr)
 
@@ -478,7 +478,7 @@ def _train_temporal(net: EgoPoseNet, images: torch.Tensor, data: EgoFrames, targ
     cached = torch.stack(copies)  # (C,N,J,3) world
     idx = windows(len(images), net.window)  # training rows are consecutive usable frames
     noise = float(cfg.noise_m)
-    batch = min(int(settings.train.batch) * 4, len(images))
+    batch = int(settings.train.batch) * 4  # drawn with replacement, like the per-frame phase's
 
     def step_fn(step: int) -> dict[str, torch.Tensor]:
         g = torch.Generator().manual_seed(seed * 15485863 + step)

@@ -154,7 +154,7 @@ class EgoPoseCommands:
 
         produced = self.run.produce(out, "model", write, inputs=inputs, source_files=sources, options=options)
         if checkpoint_dir.exists():
-            shutil.rmtree(checkpoint_dir)
+            shutil.rmtree(checkpoint_dir, ignore_errors=True)  # every torchrun rank gets here
         return produced
 
     def egopose(self, capture_path: Path, calibration_path: Path, model_path: Path, sequence: str, out: Path,
