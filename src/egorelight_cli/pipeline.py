@@ -9,6 +9,7 @@ This is the glue every CLI command uses, so that the commands themselves stay th
 
 from __future__ import annotations
 
+import os
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -103,7 +104,7 @@ class StageRun:
         key, sources = self.cache_key(inputs, source_files, options)
         started = time.perf_counter()
         with ArtifactWriter(out, kind=kind, stage=self.stage, config=config, inputs=inputs, key=key,
-                            keep=group.primary) as writer:
+                            keep=group is None or group.primary) as writer:
             writer.config = _keyed_config(config, options)
             if sources:
                 writer.extra["sources"] = sources
@@ -112,24 +113,28 @@ class StageRun:
             writer.runtime["threads"] = threads
             writer.runtime["threads_source"] = threads_source
             writer.runtime["preset"] = config.preset
-            if group.distributed:
+            if group is not None and group.distributed:
                 writer.runtime["distributed"] = group.manifest()
             write(writer, config)
             writer.timing["wall_s"] = round(time.perf_counter() - started, 3)
-        if group.distributed:
+        if group is not None and group.distributed:
             _leave_process_group()  # after rank 0 has committed
         console.info(f"{out}: wrote {kind} ({writer.timing['wall_s']:.1f} s)")
         return out
 
     def _join_process_group(self, device):
         """The torchrun process group of a ``train`` command (a single process without torchrun);
-        a stage that does not train refuses to run under torchrun (its ranks would race for one output)."""
+        None for other commands, which refuse to run under torchrun (their ranks would race for one
+        output) and do not import torch for it."""
+        world_size = os.environ.get("WORLD_SIZE", "1").strip() or "1"
+        if not self.training:
+            if world_size != "1":
+                raise EgorelightError(f"{self.stage} does not run under torchrun (WORLD_SIZE={world_size}): only "
+                                      "`train <stage>` is data-parallel; shard a per-frame stage with --shard and "
+                                      "`egorelight merge` instead")
+            return None
         from egorelight_cli.nn import distributed
 
-        if distributed.requested_world_size() > 1 and not self.training:
-            raise EgorelightError(f"{self.stage} does not run under torchrun (WORLD_SIZE="
-                                  f"{distributed.requested_world_size()}): only `train <stage>` is data-parallel; "
-                                  "shard a per-frame stage with make or a job array instead")
         group = distributed.init_from_environment(device)
         if not group.primary:
             console.set_verbosity(console.QUIET)  # rank 0 speaks for the group
