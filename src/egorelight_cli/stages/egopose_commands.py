@@ -169,8 +169,8 @@ class EgoPoseCommands:
             return Path(out)
         model, _ = load_egopose_model(model_path)
         from egorelight_cli.sharding import write_preview
-        from egorelight_cli.stages.egopose import (frame_table, groundtruth_keypoints, load_frames, predict,
-                                                   preview_image, preview_rows, rig_geometry)
+        from egorelight_cli.stages.egopose import frame_table, groundtruth_keypoints, load_frames, predict, rig_geometry
+        from egorelight_cli.stages.egopose_preview import preview_image, preview_rows
         from egorelight_cli.stages.egopose_scores import SCORES_NPZ, egopose_metrics, egopose_scores
 
         def write(writer: ArtifactWriter, cfg: Config) -> None:
