@@ -86,6 +86,21 @@ SHARD_SPEC = --shard $(subst of,/,$(word 2,$(subst /, ,$(1))))
 MERGE = $(EGO) merge $(1) --out $(2)
 .SECONDEXPANSION:
 
+# The rules of one per-frame artifact folder: $(1) folder (keypoints), $(2) prerequisites with % for
+# the sequence, $(3) the command macro: $(1) sequence, $(2) output, $(3) extra options (a shard).
+# One run per sequence with SHARDS=1; else SHARDS parts under shards/ and their merge.
+define PER_FRAME_RULES
+ifeq ($$(SHARDS),1)
+$$(SUBJECT)/$(1)/%/manifest.json: $(2)
+	$$(call $(3),$$*,$$(@D))
+else
+$$(SUBJECT)/$(1)/%/manifest.json: $$$$(call SHARD_PARTS,$(1)/$$$$*)
+	$$(call MERGE,$$(^D),$$(@D))
+$$(SUBJECT)/shards/$(1)/%/manifest.json: $(subst %,$$$$(call SHARD_SEQ,$$$$*),$(2))
+	$$(call $(3),$$(call SHARD_SEQ,$$*),$$(@D),$$(call SHARD_SPEC,$$*))
+endif
+endef
+
 # ---------------------------------------------------------------- calibrate
 $(CALIBRATION): $(CAPTURE)
 	$(EGO) $(EGOFLAGS) calibrate --capture $(SUBJECT)/capture --out $(SUBJECT)/calibration
@@ -104,15 +119,7 @@ $(SUBJECT)/models/egopose_nojitter/manifest.json: $(CAPTURE) $(CALIBRATION)
 # keypoints of a sequence: $(1) sequence, $(2) output, $(3) extra options (a shard)
 EGOPOSE_OF = $(EGO) $(EGOFLAGS) egopose $(EGO_INPUTS) --model $(SUBJECT)/models/egopose --sequence $(1) $(3) --out $(2)
 
-ifeq ($(SHARDS),1)
-$(SUBJECT)/keypoints/%/manifest.json: $(CAPTURE) $(CALIBRATION) $(EGOPOSE_MODEL)
-	$(call EGOPOSE_OF,$*,$(SUBJECT)/keypoints/$*)
-else
-$(SUBJECT)/keypoints/%/manifest.json: $$(call SHARD_PARTS,keypoints/$$*)
-	$(call MERGE,$(^D),$(@D))
-$(SUBJECT)/shards/keypoints/%/manifest.json: $(CAPTURE) $(CALIBRATION) $(EGOPOSE_MODEL)
-	$(call EGOPOSE_OF,$(call SHARD_SEQ,$*),$(@D),$(call SHARD_SPEC,$*))
-endif
+$(eval $(call PER_FRAME_RULES,keypoints,$(CAPTURE) $(CALIBRATION) $(EGOPOSE_MODEL),EGOPOSE_OF))
 
 .PHONY: egopose-ablation
 egopose-ablation: $(EGOPOSE_MODEL) $(SUBJECT)/models/egopose_nojitter/manifest.json
@@ -156,15 +163,7 @@ $(EGODEPTH_MODEL): $(CAPTURE) $(CALIBRATION)
 EGODEPTH_OF = $(EGO) $(EGOFLAGS) egodepth $(EGO_INPUTS) --model $(SUBJECT)/models/egodepth \
 	--method $(EGODEPTH_METHOD) --seq $(1) $(3) --out $(2)
 
-ifeq ($(SHARDS),1)
-$(SUBJECT)/pointcloud/%/manifest.json: $(CAPTURE) $(CALIBRATION) $(EGODEPTH_MODEL)
-	$(call EGODEPTH_OF,$*,$(SUBJECT)/pointcloud/$*)
-else
-$(SUBJECT)/pointcloud/%/manifest.json: $$(call SHARD_PARTS,pointcloud/$$*)
-	$(call MERGE,$(^D),$(@D))
-$(SUBJECT)/shards/pointcloud/%/manifest.json: $(CAPTURE) $(CALIBRATION) $(EGODEPTH_MODEL)
-	$(call EGODEPTH_OF,$(call SHARD_SEQ,$*),$(@D),$(call SHARD_SPEC,$*))
-endif
+$(eval $(call PER_FRAME_RULES,pointcloud,$(CAPTURE) $(CALIBRATION) $(EGODEPTH_MODEL),EGODEPTH_OF))
 
 # ---------------------------------------------------------------- animate (Sec. depth-conditioned animatable avatar)
 # Trained on the mocap motion + ego point cloud of ANIMATE_TRAIN_SEQ; the depth-agnostic student is
@@ -216,16 +215,9 @@ $(GEOLIFT_MODEL): $(CAPTURE) $(CHARACTER) $(foreach s,$(GEOLIFT_TRAIN_SEQS),$(SU
 GEOLIFT_OF = $(EGO) $(EGOFLAGS) geolift --meshes $(1) --model $(SUBJECT)/models/geolift \
 	--character $(SUBJECT)/character --capture $(SUBJECT)/capture --seq $(2) $(4) --out $(3)
 
-ifeq ($(SHARDS),1)
-$(SUBJECT)/uvmaps/%/manifest.json: $(SUBJECT)/meshes/%/manifest.json $(GEOLIFT_MODEL) $(CHARACTER) $(CAPTURE)
-	$(call GEOLIFT_OF,$(SUBJECT)/meshes/$*,$*,$(SUBJECT)/uvmaps/$*)
-else
-$(SUBJECT)/uvmaps/%/manifest.json: $$(call SHARD_PARTS,uvmaps/$$*)
-	$(call MERGE,$(^D),$(@D))
-$(SUBJECT)/shards/uvmaps/%/manifest.json: $(SUBJECT)/meshes/$$(call SHARD_SEQ,$$*)/manifest.json $(GEOLIFT_MODEL) \
-		$(CHARACTER) $(CAPTURE)
-	$(call GEOLIFT_OF,$(SUBJECT)/meshes/$(call SHARD_SEQ,$*),$(call SHARD_SEQ,$*),$(@D),$(call SHARD_SPEC,$*))
-endif
+# uvmaps of the tracked meshes of a sequence: $(1) sequence, $(2) output, $(3) extra options
+UVMAPS_OF = $(call GEOLIFT_OF,$(SUBJECT)/meshes/$(1),$(1),$(2),$(3))
+$(eval $(call PER_FRAME_RULES,uvmaps,$(SUBJECT)/meshes/%/manifest.json $(GEOLIFT_MODEL) $(CHARACTER) $(CAPTURE),UVMAPS_OF))
 
 # ---------------------------------------------------------------- relight (Sec. relightable avatar)
 # DiffuseNet + SpecularNet train on the HDR-lit frames of RELIGHT_TRAIN_SEQ (student meshes and their
@@ -252,18 +244,10 @@ $(RELIGHT_MODEL): $(RELIGHT_TRAIN_INPUTS)
 RELIGHT_OF = $(EGO) $(EGOFLAGS) relight --capture $(SUBJECT)/capture --meshes $(1) --uvmaps $(2) \
 	--model $(or $(5),$(SUBJECT)/models/relight) --character $(SUBJECT)/character --seq $(3) $(6) --out $(4)
 
-ifeq ($(SHARDS),1)
-$(SUBJECT)/renders/%/manifest.json: $(SUBJECT)/meshes/%/manifest.json $(SUBJECT)/uvmaps/%/manifest.json \
-		$(RELIGHT_MODEL) $(CHARACTER) $(CAPTURE)
-	$(call RELIGHT_OF,$(SUBJECT)/meshes/$*,$(SUBJECT)/uvmaps/$*,$*,$(SUBJECT)/renders/$*)
-else
-$(SUBJECT)/renders/%/manifest.json: $$(call SHARD_PARTS,renders/$$*)
-	$(call MERGE,$(^D),$(@D))
-$(SUBJECT)/shards/renders/%/manifest.json: $(SUBJECT)/meshes/$$(call SHARD_SEQ,$$*)/manifest.json \
-		$(SUBJECT)/uvmaps/$$(call SHARD_SEQ,$$*)/manifest.json $(RELIGHT_MODEL) $(CHARACTER) $(CAPTURE)
-	$(call RELIGHT_OF,$(SUBJECT)/meshes/$(call SHARD_SEQ,$*),$(SUBJECT)/uvmaps/$(call SHARD_SEQ,$*),\
-		$(call SHARD_SEQ,$*),$(@D),,$(call SHARD_SPEC,$*))
-endif
+# renders of the tracked meshes of a sequence: $(1) sequence, $(2) output, $(3) extra options
+RENDERS_OF = $(call RELIGHT_OF,$(SUBJECT)/meshes/$(1),$(SUBJECT)/uvmaps/$(1),$(1),$(2),,$(3))
+$(eval $(call PER_FRAME_RULES,renders,$(SUBJECT)/meshes/%/manifest.json $(SUBJECT)/uvmaps/%/manifest.json \
+	$(RELIGHT_MODEL) $(CHARACTER) $(CAPTURE),RENDERS_OF))
 
 # The same avatar and protocol on better meshes (issue 18's rows that show what tracking costs):
 # renders_studio/<seq>: the meshes a lightstage tracks (its markerless mocap -> the student), no

@@ -90,12 +90,8 @@ class FrameRange:
         return start, stop
 
     def describe(self) -> str:
-        if self.shard is not None:
-            return f"--shard {self.shard[0]}/{self.shard[1]}"
-        if self.frames is not None:
-            start, stop = ("" if v is None else v for v in self.frames)
-            return f"--frames {start}:{stop}"
-        return "all frames"
+        """The range as the user gave it (``--shard 1/4``), or ``all frames``."""
+        return " ".join(f"--{option} {value}" for option, value in self.key().items()) or "all frames"
 
     def manifest(self, total: int) -> dict | None:
         """The manifest's ``shard`` entry (None for a whole run)."""
