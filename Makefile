@@ -77,7 +77,7 @@ GT = $(if $(wildcard $(SUBJECT)/capture/groundtruth/$(1)),--gt $(SUBJECT)/captur
 # Frame shards (issue 22): with SHARDS=N > 1 the per-frame stages egopose, egodepth, geolift and relight run
 # as N shards (`--shard i/N`, partial artifacts under $(SUBJECT)/shards/) that `egorelight merge`
 # joins into the artifact one run writes; `make -jN` runs the shards side by side, and
-# `bench/slurm.py` submits the same rules as a Slurm job array. SHARD_SEQ/SHARD_SPEC read a part's
+# SCHEDULER=slurm runs each of them as an srun job step. SHARD_SEQ/SHARD_SPEC read a part's
 # stem `<seq>/<i>of<N>`.
 SHARDS ?= 1
 SHARD_PARTS = $(foreach i,$(shell seq 0 $$(($(SHARDS) - 1))),$(SUBJECT)/shards/$(1)/$(i)of$(SHARDS)/manifest.json)
