@@ -220,6 +220,62 @@ def test_works_on_the_ddc_example(ddc_example):
     np.testing.assert_allclose(result.theta[:, groups.fixed], np.repeat(ddc.rest_theta[None, groups.fixed], 30, 0))
 
 
+def _joint_weight(character, d: int) -> float:
+    return float(np.abs(character.skeleton.dof_joint_weights[d]).max())
+
+
+def test_default_hand_prior_bends_fingers_in_joint_angles_not_dof_units(ddc_example):
+    """The DDC fingers drive their joints with weight 3, so their DoF limits [-1.57, 0.3] allow
+    -270 deg of joint rotation: the prior curls at most ``max_flexion_deg`` of joint rotation."""
+    from egorelight_cli.stages.character_commands import load_character
+    from egorelight_cli.stages.ik_model import finger_of, synthetic_hand_poses
+
+    ddc, _ = load_character(ddc_example / "ddc.character")
+    index = classify_dofs(ddc).hands["Left"]
+    curl = np.array([finger_of(ddc, int(d))[1] and _joint_weight(ddc, int(d)) > 1 for d in index])
+    weight = np.array([_joint_weight(ddc, int(d)) for d in index])
+    rest = ddc.rest_theta[index]
+    poses = synthetic_hand_poses(ddc, index, 2000, np.random.default_rng(0), max_flexion_rad=np.radians(100))
+    joint_deg = np.degrees((poses - rest) * weight)[:, curl]
+    assert curl.sum() >= 8 and np.abs(joint_deg).max() <= 100.01
+    assert -75 < joint_deg.mean() < -25  # half a fist on average (it was -134 deg)
+    uncapped = synthetic_hand_poses(ddc, index, 2000, np.random.default_rng(0), max_flexion_rad=1e6)
+    assert np.degrees((uncapped - rest) * weight)[:, curl].mean() < -100  # what the cap fixes
+    with pytest.raises(EgorelightError, match="hand_pca.max_flexion_deg"):
+        IKSettings(hand_max_flexion_deg=0.0)
+
+
+def test_trained_hand_prior_beats_the_default_on_held_out_fingers(ddc_example):
+    """Fingers curling independently (outside the default model's coupled grasp subspace): a
+    model trained on the first half of the motion fits the second half's hands better, noise-free."""
+    from egorelight_cli.stages.character_commands import load_character
+    from egorelight_cli.stages.ik_model import finger_of
+
+    ddc, _ = load_character(ddc_example / "ddc.character")
+    default = default_ik_model(ddc, FAST)
+    T = 80
+    theta = smooth_motion(ddc, default, T=T, seed=3, amplitude=0.1)
+    rng = np.random.default_rng(5)
+    t = np.arange(T) / 30.0
+    for index in classify_dofs(ddc).hands.values():
+        for d in index:
+            finger, is_curl = finger_of(ddc, int(d))
+            lo, hi = ddc.skeleton.dof_limits[d]
+            if is_curl and np.isfinite([lo, hi]).all():
+                phase = {"Thumb": 0, "Index": 1, "Middle": 2, "Ring": 3, "Pinky": 4}[finger] + rng.uniform(0, 0.3)
+                amount = 0.5 + 0.5 * np.sin(2 * np.pi * 0.6 * t + 1.3 * phase)
+                theta[:, d] = np.clip(-np.radians(80) * amount / _joint_weight(ddc, int(d)), lo, hi)
+    half = T // 2
+    trained = train_ik_model(ddc, [theta[:half]], FAST)
+    held_out = keypoints_of(ddc, theta[half:])
+    hands = slice(15, None)
+    errors = {}
+    for name, model in (("default", default), ("trained", trained)):
+        result = solve_ik(ddc, held_out, model, FAST)
+        errors[name] = float(np.linalg.norm(result.fitted_keypoints - held_out.xyz, axis=-1)[:, hands].mean())
+    assert errors["trained"] < 0.6 * errors["default"], errors
+
+
 def test_model_training_and_pca(character):
     rng = np.random.default_rng(0)
     base = default_ik_model(character, FAST)

@@ -33,7 +33,7 @@ STAGES: tuple[StageInfo, ...] = (
     StageInfo("calibrate", "calibrate", ("calibration",), ("calibration/",)),
     StageInfo("egopose", "egopose: ego images -> 57 keypoints", ("keypoints",), ("models/egopose/", "keypoints/<seq>/")),
     StageInfo("ik", "ik: keypoints -> skeleton motion", ("motion",),
-              ("models/ik/", "motion/<seq>/", "motion_mocap/<seq>/")),
+              ("models/ik/", "models/ik_default/", "motion/<seq>/", "motion_mocap/<seq>/", "motion_bootstrap/<seq>/")),
     StageInfo("egodepth", "egodepth: ego images -> point cloud", ("pointcloud",),
               ("models/egodepth/", "pointcloud/<seq>/")),
     StageInfo("animate", "animate: motion + depth -> tracked meshes", ("meshes",),

@@ -234,7 +234,10 @@ class IKCommands:
         def write(writer: ArtifactWriter, cfg: Config) -> None:
             settings = IKSettings.from_config(cfg)
             if source.keypoints is not None:
-                result = solve_ik(character, source.keypoints, model or default_ik_model(character, settings), settings)
+                used = model or default_ik_model(character, settings)
+                result = solve_ik(character, source.keypoints, used, settings)
+                # which prior regularised the fit: "motions" (trained) or "default" (synthetic hands, rest pose)
+                writer.metrics.update({"prior": used.source, "prior_training_frames": used.num_training_frames})
             else:
                 result = passthrough_result(character, source.theta, source.frame_ids, settings.fps)
             save_motion(writer, result.motion(character.skeleton.dof_names), source=source.info.get("source"))

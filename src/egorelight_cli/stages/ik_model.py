@@ -113,7 +113,7 @@ class HandPCA:
         return self.mean + np.asarray(eta) @ self.basis.T
 
 
-def _finger_of(character: Character, d: int) -> tuple[str, bool]:
+def finger_of(character: Character, d: int) -> tuple[str, bool]:
     """(finger name, is a curl DoF) of a hand DoF, from its first driven joint's name."""
     sk = character.skeleton
     names = [sk.joint_names[j] for j in np.nonzero(sk.dof_joint_weights[d])[0]]
@@ -121,24 +121,30 @@ def _finger_of(character: Character, d: int) -> tuple[str, bool]:
     return finger, any(CURL_JOINT.match(n) for n in names)
 
 
-def synthetic_hand_poses(character: Character, dof_index: np.ndarray, num: int, rng: np.random.Generator) -> np.ndarray:
+def synthetic_hand_poses(character: Character, dof_index: np.ndarray, num: int, rng: np.random.Generator,
+                         max_flexion_rad: float = np.radians(100.0)) -> np.ndarray:
     """(num, m) finger poses sampled within the DoF limits with anatomical coupling.
 
     A latent grasp ``g ~ Beta(0.7, 0.7)`` (0 open, 1 fist) drives every finger: finger curl
     ``c_f = clip(g + 0.2 N)`` (thumb ``clip(0.6 g + 0.2 + 0.25 N)``), and each joint of the finger
-    curls ``clip(c_f + 0.08 N)`` of the way from the rest value to the limit on the side with the
-    larger range (the flexion side). Spread/abduction DoFs are uniform within their limits,
+    curls ``clip(c_f + 0.08 N)`` of the way from the rest value to its flexion end: the limit on
+    the side with the larger range, but no further than ``max_flexion_rad`` of *joint* rotation.
+    A DoF drives its joints with a weight (DDC fingers: 3), so a DoF value ``v`` turns the joint
+    by ``weight * v``; limits are in DoF units and can allow far more than a finger bends (the DDC
+    example's [-1.57, 0.3] are -270..+52 degrees of joint rotation). Spread/abduction DoFs are
+    uniform within their limits (again capped at ``max_flexion_rad`` of joint rotation from rest),
     biased towards spreading when the hand is open. DoFs without finite limits get +-0.8 rad of
     joint motion around rest (curl DoFs then sample both directions).
     """
     sk = character.skeleton
     limits = sk.dof_limits[dof_index]
     rest = np.clip(character.rest_theta[dof_index], limits[:, 0], limits[:, 1])
-    weight = np.array([np.abs(sk.dof_joint_weights[d]).max() for d in dof_index])
-    span = 0.8 / np.maximum(weight, 1e-6)
-    lo = np.where(np.isfinite(limits[:, 0]), limits[:, 0], rest - span)
-    hi = np.where(np.isfinite(limits[:, 1]), limits[:, 1], rest + span)
-    info = [_finger_of(character, int(d)) for d in dof_index]
+    weight = np.maximum(np.array([np.abs(sk.dof_joint_weights[d]).max() for d in dof_index]), 1e-6)
+    span = 0.8 / weight
+    reach = max_flexion_rad / weight  # the most a finger joint turns, in DoF units
+    lo = np.where(np.isfinite(limits[:, 0]), np.maximum(limits[:, 0], rest - reach), rest - span)
+    hi = np.where(np.isfinite(limits[:, 1]), np.minimum(limits[:, 1], rest + reach), rest + span)
+    info = [finger_of(character, int(d)) for d in dof_index]
     g = rng.beta(0.7, 0.7, size=num)
     finger_curl = {}
     for finger in ("Thumb", "Index", "Middle", "Ring", "Pinky"):
@@ -251,7 +257,8 @@ class IKModel:
 
 
 def _model_settings(settings: IKSettings) -> dict:
-    return {"hand_components": settings.hand_components, "hand_samples": settings.hand_samples, "seed": settings.seed}
+    return {"hand_components": settings.hand_components, "hand_samples": settings.hand_samples,
+            "hand_max_flexion_deg": settings.hand_max_flexion_deg, "seed": settings.seed}
 
 
 def default_ik_model(character: Character, settings: IKSettings = IKSettings()) -> IKModel:
@@ -277,7 +284,8 @@ def train_ik_model(character: Character, motions: Sequence[np.ndarray], settings
         if settings.hand_components > len(index):
             raise EgorelightError(f"ik hand_pca.components is {settings.hand_components} but the character's {side} "
                                   f"hand has {len(index)} finger DoFs")
-        synthetic = synthetic_hand_poses(character, index, settings.hand_samples, rng)
+        synthetic = synthetic_hand_poses(character, index, settings.hand_samples, rng,
+                                         np.radians(settings.hand_max_flexion_deg))
         source = data[:, index] if len(data) >= 2 else synthetic
         mean, basis, variance = fit_pca(source, settings.hand_components, fallback=synthetic)
         total = float(np.var(source, axis=0, ddof=1).sum()) if len(source) > 1 else 0.0

@@ -28,7 +28,7 @@ _AT_LEAST = {"lm_iterations": 1, "lm_chunk_frames": 1, "lm_frame_iterations": 0,
              "lbfgs_history": 1, "hand_components": 1, "hand_samples": 2, "min_confidence": 0.0,
              "outlier_residual_factor": 0.0, "outlier_min_residual_m": 0.0,
              **{w: 0.0 for w in ("w_data", "w_temporal", "w_hand_temporal", "w_reg", "w_dof_limit")}}
-_POSITIVE = ("fps", "length_unit_m", "huber_delta_m", "outlier_distance_m", "min_span_m", "max_span_m")
+_POSITIVE = ("hand_max_flexion_deg", "fps", "length_unit_m", "huber_delta_m", "outlier_distance_m", "min_span_m", "max_span_m")
 
 
 @dataclass(frozen=True)
@@ -60,6 +60,7 @@ class IKSettings:
     lbfgs_history: int = _key("lbfgs.history")
     hand_components: int = _key("hand_pca.components")
     hand_samples: int = _key("hand_pca.synthetic_samples")
+    hand_max_flexion_deg: float = _key("hand_pca.max_flexion_deg")
     robust_loss: str = _key("robust.loss")
     huber_delta_m: float = _key("robust.huber_delta_m")
     outlier_distance_m: float = _key("robust.outlier_distance_m")
