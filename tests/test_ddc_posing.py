@@ -80,6 +80,65 @@ def test_graph_matches_ddc_rule(character):
     np.testing.assert_allclose(rebuilt.vertex_node_weight, g.vertex_node_weight)
 
 
+def reference_graph_links(template: np.ndarray, faces: np.ndarray, graph_vertices: np.ndarray):
+    """The DDC reference's construction, literally, one node and one vertex at a time: each graph
+    vertex binds to the nearest unused template vertex; breadth-first hops from it; radius
+    max(max hops over the template one-ring of that vertex // 2, 3); vertex v links to the nodes
+    with hops/r <= 1 (else <= 2), weights exp(-0.5 (hops/r)^2) normalised."""
+    from collections import deque
+
+    V = len(template)
+    ring = [set() for _ in range(V)]
+    for a, b, c in faces:
+        ring[a] |= {b, c}
+        ring[b] |= {a, c}
+        ring[c] |= {a, b}
+    used = np.zeros(V, bool)
+    node_vertex, hops, radius = [], [], []
+    for p in graph_vertices:
+        d = np.linalg.norm(template - p, axis=1) + used * 1e9
+        v = int(np.argmin(d))
+        used[v] = True
+        node_vertex.append(v)
+        h = np.full(V, np.inf)
+        h[v] = 0
+        queue = deque([v])
+        while queue:
+            u = queue.popleft()
+            for w in ring[u]:
+                if h[w] == np.inf:
+                    h[w] = h[u] + 1
+                    queue.append(w)
+        hops.append(h)
+        radius.append(max(max(h[u] for u in ring[v]) // 2, 3))
+    ratio = np.array(hops) / np.array(radius)[:, None]
+    links = []
+    for v in range(V):
+        near = np.nonzero(ratio[:, v] <= 1)[0]
+        if not len(near):
+            near = np.nonzero(ratio[:, v] <= 2)[0]
+        w = np.exp(-0.5 * ratio[near, v] ** 2)
+        links.append(dict(zip(near.tolist(), (w / w.sum()).tolist())))
+    return np.array(node_vertex), np.array(radius, float), links
+
+
+def test_graph_links_match_the_ddc_reference_construction(character):
+    """Every vertex of the DDC example links to the reference's nodes with its weights (before
+    issue 21, 245 vertices did not: the radius came from the graph neighbours)."""
+    mesh = ddc_io.read_obj(DDC_EXAMPLE / "ddc.obj")
+    graph_mesh = ddc_io.read_obj(DDC_EXAMPLE / "ddc_graph.obj")
+    node_vertex, radius, links = reference_graph_links(mesh.vertices, mesh.faces, graph_mesh.vertices)
+    g = character.graph
+    np.testing.assert_array_equal(g.node_vertex, node_vertex)
+    np.testing.assert_array_equal(g.node_radius, radius)
+    assert np.all(radius == 3)
+    for v, expected in enumerate(links):
+        row = g.vertex_node_index[v] >= 0
+        got = dict(zip(g.vertex_node_index[v][row].tolist(), g.vertex_node_weight[v][row].tolist()))
+        assert got.keys() == expected.keys(), v
+        np.testing.assert_allclose([got[k] for k in expected], list(expected.values()), rtol=1e-9, err_msg=str(v))
+
+
 def test_graph_posing_is_close_to_vertex_skinning(character):
     sk = character.skeleton
     revolute_dofs = np.abs(sk.dof_joint_weights[:, sk.joint_types == REVOLUTE]).sum(1) > 0

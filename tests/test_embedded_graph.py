@@ -83,27 +83,28 @@ def test_build_on_strip_by_hand():
     V = len(verts)
     node_vertex = np.array([0, 10, 14])  # row 0, columns 0, 10, 14
     g = build_embedded_graph(faces, V, node_vertex, np.array([[0, 1], [1, 2]]))
-    # radii: node 0 -> 10 hops to node 1 -> 5; node 1 -> max(10, 4) // 2 = 5; node 2 -> 4 // 2 = 2 -> 3
-    np.testing.assert_array_equal(g.node_radius, [5, 5, 3])
+    # the DDC reference's radius: max(one-ring hops // 2, 3) = 3 for every node; the graph edges
+    # (node 0 is 10 hops from node 1) do not widen it
+    np.testing.assert_array_equal(g.node_radius, [3, 3, 3])
     np.testing.assert_array_equal(g.edges, [[0, 1], [1, 2]])
     W = dense_weights(g, V)
     np.testing.assert_allclose(W.sum(1), 1.0)
-    # vertex (5,0): 5 hops from nodes 0 and 1 -> d = 1 for both (node 2: 9/3) -> equal weights
+    # vertex (8,0): node 1 at d = 2/3 only
+    np.testing.assert_allclose(W[8], [0.0, 1.0, 0.0])
+    # vertex (12,0): nodes 1 and 2 both 2 hops away
+    np.testing.assert_allclose(W[12], [0.0, 0.5, 0.5])
+    # vertex (5,0): 5 hops from nodes 0 and 1, no node within d <= 1; DDC fallback d <= 2
     np.testing.assert_allclose(W[5], [0.5, 0.5, 0.0])
-    # vertex (12,0): node 1 at d = 2/5, node 2 at d = 2/3
-    np.testing.assert_allclose(W[12], [0.0, *_w(2 / 5, 2 / 3)])
-    # vertex (17,0): node 2 at d = 3/3, node 1 at 7/5 > 1
+    # vertex (17,0): node 2 at d = 3/3, node 1 at 7/3 > 1
     np.testing.assert_allclose(W[17], [0.0, 0.0, 1.0])
-    # vertex (19,0): no node within d <= 1; DDC fallback d <= 2: node 1 at 9/5, node 2 at 5/3
-    np.testing.assert_allclose(W[19], [0.0, *_w(9 / 5, 5 / 3)])
-    # vertex (20,0): d = 10/5 = 2 and 6/3 = 2
-    np.testing.assert_allclose(W[20], [0.0, 0.5, 0.5])
-    # row 1: (5,1) is 5 hops from node 0 (via the diagonal (0,0)-(1,1)) and 6 from node 1
+    # vertex (20,0): node 2 at 6/3 = 2 (fallback), node 1 at 10/3
+    np.testing.assert_allclose(W[20], [0.0, 0.0, 1.0])
+    # row 1: (5,1) is 5 hops from node 0 (via the diagonal (0,0)-(1,1)) and 6 from node 1: fallback
     assert [bfs(faces, V, n)[21 + 5] for n in node_vertex] == [5, 6, 10]
-    np.testing.assert_allclose(W[21 + 5], [1.0, 0.0, 0.0])
+    np.testing.assert_allclose(W[21 + 5], [*_w(5 / 3, 6 / 3), 0.0])
     # (12,1): 2 hops from node 1, 3 from node 2
     assert [bfs(faces, V, n)[21 + 12] for n in node_vertex] == [12, 2, 3]
-    np.testing.assert_allclose(W[21 + 12], [0.0, *_w(2 / 5, 3 / 3)])
+    np.testing.assert_allclose(W[21 + 12], [0.0, *_w(2 / 3, 3 / 3)])
     # padded layout: -1 / 0 padding, sorted by decreasing weight
     assert g.vertex_node_index.shape == (V, 2)
     assert np.all((g.vertex_node_index >= 0) == (g.vertex_node_weight > 0))

@@ -96,27 +96,32 @@ def _graph_edges(num_nodes: int, node_edges: np.ndarray, node_faces: np.ndarray 
     return np.unique(e, axis=0) if len(e) else np.zeros((0, 2), np.int64)
 
 
-def node_radii(hops: np.ndarray, node_vertex: np.ndarray, edges: np.ndarray) -> np.ndarray:
-    """DDC node radius: ``max(max_j hops(k, vertex of graph neighbour j) // 2, 3)``.
+def node_radii(hops: np.ndarray, node_vertex: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """DDC node radius in hops, as the DDC reference builds it:
+    ``r_k = max(max_{u in one-ring(node_vertex[k])} hops(k, u) // 2, 3)``.
 
-    Unreachable neighbours (other mesh component) are ignored; a node without reachable
-    neighbours gets the minimum radius.
+    The maximum runs over the *template* one-ring of the node's vertex, whose vertices are one hop
+    away, so every node of a connected template gets the minimum radius of 3 hops (the DDC
+    example: all 852 nodes). An isolated node vertex (no edge) gets the minimum as well.
 
     Args:
         hops: (N,V) hop distances from each node's vertex.
         node_vertex: (N,) template vertex of each node.
-        edges: (E,2) undirected node pairs.
+        faces: (F,3) template triangles (for the one-rings).
     Returns:
         (N,) float64 integer-valued radii in hops.
     """
     N = len(node_vertex)
+    e = mesh_edges(faces)
     far = np.zeros(N)
-    if len(edges):
-        a, b = edges[:, 0], edges[:, 1]
-        d = hops[a, node_vertex[b]]  # symmetric on an undirected graph
-        d = np.where(np.isfinite(d), d, 0.0)
-        np.maximum.at(far, a, d)
-        np.maximum.at(far, b, d)
+    if len(e):
+        owner = np.full(hops.shape[1], -1, dtype=np.int64)
+        owner[node_vertex] = np.arange(N)
+        for a, b in ((e[:, 0], e[:, 1]), (e[:, 1], e[:, 0])):  # (node vertex, its one-ring neighbour)
+            k = owner[a]
+            mask = k >= 0
+            d = hops[k[mask], b[mask]]
+            np.maximum.at(far, k[mask], np.where(np.isfinite(d), d, 0.0))
     return np.maximum(np.floor(far / 2.0), MIN_NODE_RADIUS).astype(np.float64)
 
 
@@ -186,14 +191,15 @@ def build_embedded_graph(faces: np.ndarray, num_vertices: int, node_vertex: np.n
     """Build a DDC embedded graph over a template mesh.
 
     Hop distances are BFS distances on the template's edge graph from every node's vertex.
-    Node radius ``r_k = max(max_j hops(k, node_vertex[j]) // 2, 3)`` over the graph neighbours j
-    of k (from ``node_edges`` and the edges of ``node_faces``). Vertex v links to node k when
-    ``d = hops(k, v) / r_k <= 1`` with weight ``exp(-0.5 d^2)``, normalised per vertex (see
-    :func:`vertex_node_links` for vertices reached by no node).
+    Node radii follow the DDC reference (:func:`node_radii`: 3 hops on a connected template).
+    Vertex v links to node k when ``d = hops(k, v) / r_k <= 1`` with weight ``exp(-0.5 d^2)``,
+    normalised per vertex; a vertex with no node in reach links within ``d <= 2`` (see
+    :func:`vertex_node_links` for vertices reached by no node even then). The node edges
+    (``node_edges`` and the edges of ``node_faces``) are the graph's own connectivity (ARAP
+    terms), not part of the links.
 
-    Note: the public DeepCharacters PyTorch reader takes the radius over the *template one-ring*
-    of the node vertex (which always yields the minimum radius 3); this follows the documented
-    DDC rule (graph neighbours) instead.
+    Before issue 21 the radius was taken over the *graph* neighbours' vertices (halved), which
+    gave 245 vertices of the DDC example other links than the reference.
 
     Args:
         faces: (F,3) template triangles.
@@ -216,7 +222,7 @@ def build_embedded_graph(faces: np.ndarray, num_vertices: int, node_vertex: np.n
         raise EgorelightError("template faces index vertices out of range")
     edges = _graph_edges(N, node_edges, node_faces)
     hops = hop_distances(faces, V, node_vertex)
-    radius = node_radii(hops, node_vertex, edges)
+    radius = node_radii(hops, node_vertex, faces)
     vertex, node, weight = vertex_node_links(hops, radius, vertices, node_vertex)
     index, value = _pad_rows(vertex, node, weight, V)
     return EmbeddedGraph(
