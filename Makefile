@@ -179,6 +179,31 @@ EGODEPTH_OF = $(EGO) $(EGOFLAGS) egodepth $(EGO_INPUTS) --model $(SUBJECT)/model
 
 $(eval $(call PER_FRAME_RULES,pointcloud,$(CAPTURE) $(CALIBRATION) $(EGODEPTH_MODEL),EGODEPTH_OF))
 
+# ---------------------------------------------------------------- learning curves (issue 21)
+# Held-out error on SEQ against the number of training frames: each model is trained like the
+# default one on CURVE_FRAMES frames (evenly spaced over the training sequence after egopose's
+# validation split; 0 = all of them). egopose's model scores SEQ itself (with the mean-pose
+# baseline); egodepth's point clouds of SEQ are scored next to SGBM on the same frames.
+CURVE_FRAMES ?= 4 8 16 0
+
+$(SUBJECT)/curves/egopose/%/manifest.json: $(CAPTURE) $(CALIBRATION)
+	$(EGO) $(EGOFLAGS) train egopose $(EGO_INPUTS) --set train.max_frames=$* --set evaluate_sequence=$(SEQ) \
+		--out $(SUBJECT)/curves/egopose/$*
+
+$(SUBJECT)/curves/egodepth_model/%/manifest.json: $(CAPTURE) $(CALIBRATION)
+	$(EGO) $(EGOFLAGS) train egodepth $(EGO_INPUTS) --set train.max_frames=$* --out $(SUBJECT)/curves/egodepth_model/$*
+
+$(SUBJECT)/curves/egodepth/%/manifest.json: $(SUBJECT)/curves/egodepth_model/%/manifest.json
+	$(EGO) $(EGOFLAGS) egodepth $(EGO_INPUTS) --model $(SUBJECT)/curves/egodepth_model/$* --method net --seq $(SEQ) \
+		--out $(SUBJECT)/curves/egodepth/$*
+
+.PHONY: egopose-curve egodepth-curve
+egopose-curve: $(foreach n,$(CURVE_FRAMES),$(SUBJECT)/curves/egopose/$(n)/manifest.json)
+	@$(BIN)/python -m egorelight_cli.report.table --keys training_frames,$(SEQ)_mpjpe_body_cm,$(SEQ)_mpjpe_hands_cm,$(SEQ)_per_frame_mpjpe_body_cm,$(SEQ)_per_frame_mpjpe_hands_cm,$(SEQ)_mean_pose_mpjpe_body_cm,$(SEQ)_mean_pose_mpjpe_hands_cm $^
+
+egodepth-curve: $(foreach n,$(CURVE_FRAMES),$(SUBJECT)/curves/egodepth/$(n)/manifest.json)
+	@$(BIN)/python -m egorelight_cli.report.table --keys depth_absrel,point_to_surface_cm,sgbm_depth_absrel,sgbm_point_to_surface_cm $^
+
 # ---------------------------------------------------------------- animate (Sec. depth-conditioned animatable avatar)
 # Trained on the mocap motion + ego point cloud of ANIMATE_TRAIN_SEQ; the depth-agnostic student is
 # fine-tuned with xi = 0 on the flat-lit frames of ANIMATE_STUDENT_SEQ (for the appearance stages).

@@ -318,3 +318,22 @@ def test_refine_with_zero_blend_returns_the_prior():
     H[:, :3, 3] = torch.randn(3, 3)
     out = net.refine(torch.randn(3, 2, NUM_KEYPOINTS, 3), H)
     torch.testing.assert_close(out, transform(heading_frame(H), net.prior_heading.expand(3, -1, -1)))
+
+
+def test_max_frames_trains_on_an_evenly_spaced_subset(tiny_capture, oracle_calibration):
+    """``train.max_frames`` (learning curves) keeps that many training frames, ends included."""
+    from egorelight_cli.config import resolve_config
+    from egorelight_cli.io.capture import Capture
+    from egorelight_cli.io.keypoints import read_keypoints_npz
+    from egorelight_cli.stages.egopose import EgoPoseSettings, load_frames, rig_geometry, train_egopose
+
+    capture = Capture(tiny_capture)
+    frames = load_frames(capture, oracle_calibration, "ego_train", 32, only_content=True)
+    mocap = read_keypoints_npz(capture.sequence("ego_train").mocap_path())
+    usable = int((frames.usable & np.isin(frames.frame_ids, mocap.frame_ids)).sum())
+    assert usable >= 3
+    for max_frames, expected in ((2, 2), (0, usable)):
+        cfg = resolve_config("egopose", "tiny", ("train.steps=2", "train.temporal.steps=1", "train.batch=2",
+                                                 "net.channels=8", f"train.max_frames={max_frames}"))
+        result = train_egopose(frames, mocap, rig_geometry(capture, oracle_calibration), EgoPoseSettings(cfg))
+        assert result.info["training_frames"] == expected

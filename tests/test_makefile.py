@@ -38,6 +38,18 @@ def test_relight_ablation_trains_each_variant_and_prints_one_table(tmp_path):
     assert table.count("manifest.json") == 5
 
 
+def test_learning_curves_train_one_model_per_frame_count_and_print_tables(tmp_path):
+    out = _dry_run(tmp_path, "CURVE_FRAMES=4 0", "egopose-curve", "egodepth-curve")
+    for n in ("4", "0"):
+        assert f"train egopose --capture {tmp_path}/capture --calibration {tmp_path}/calibration " \
+               f"--set train.max_frames={n} --set evaluate_sequence=test" in out
+        assert f"--set train.max_frames={n} --out {tmp_path}/curves/egodepth_model/{n}" in out
+        assert f"--model {tmp_path}/curves/egodepth_model/{n} --method net --seq test" in out
+    tables = [line for line in out.splitlines() if "egorelight_cli.report.table" in line]
+    assert len(tables) == 2 and all(t.count("manifest.json") == 2 for t in tables)
+    assert "test_mean_pose_mpjpe_body_cm" in tables[0] and "sgbm_point_to_surface_cm" in tables[1]
+
+
 def test_sharded_stages_run_as_shards_and_merge(tmp_path):
     out = _dry_run(tmp_path, "SHARDS=3", f"{tmp_path}/renders/test/manifest.json")
     for folder, command in (("keypoints", "egopose"), ("pointcloud", "egodepth"), ("uvmaps", "geolift"),

@@ -4,11 +4,18 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 
 from egorelight_cli.errors import EgorelightError
-from egorelight_cli.sharding import FrameRange
+from egorelight_cli.sharding import FrameRange, evenly_spaced
 from tiny_models import assert_shards_merge_into, cli_exit_code
+
+
+def test_evenly_spaced_subsets_keep_the_ends_and_the_order():
+    assert evenly_spaced(list("abcdefghi"), 3) == ["a", "e", "i"]
+    np.testing.assert_array_equal(evenly_spaced(np.arange(10, 20), 4), [10, 13, 16, 19])
+    assert evenly_spaced([1, 2], 5) == [1, 2] and evenly_spaced([1, 2, 3], 0) == [1, 2, 3]
 
 
 def test_frame_ranges_cover_a_sequence_once():

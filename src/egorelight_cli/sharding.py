@@ -43,6 +43,16 @@ FRAMES_PATTERN = re.compile(r"^\s*(-?\d*)\s*:\s*(-?\d*)\s*$")
 SHARD_PATTERN = re.compile(r"^\s*(\d+)\s*/\s*(\d+)\s*$")
 
 
+def evenly_spaced(items, count: int):
+    """``count`` of ``items`` (a sequence or array) at evenly spaced positions, first and last
+    included, in order; all of them when ``count`` is 0 or at least their number (training-set
+    subsets for learning curves)."""
+    if count <= 0 or len(items) <= count:
+        return items
+    picks = np.linspace(0, len(items) - 1, count).round().astype(int)
+    return items[picks] if isinstance(items, np.ndarray) else [items[i] for i in picks]
+
+
 @dataclass(frozen=True)
 class FrameRange:
     """Which of a sequence's output frames (by position) a run computes: ``frames`` (start, stop)

@@ -38,6 +38,7 @@ import numpy as np
 import torch
 
 from egorelight_cli.errors import EgorelightError
+from egorelight_cli.sharding import evenly_spaced
 from egorelight_cli.geometry.cameras import Camera, invert_rigid
 from egorelight_cli.geometry.depth import camera_ray_map, depth_edges, range_to_depth, render_depth, unproject_depth
 from egorelight_cli.geometry.pointcloud_ops import fixed_size_cloud, fuse_views
@@ -133,8 +134,7 @@ def supervision(capture: Capture, calibration: Calibration, sequences: Sequence[
         check_roles(capture, sequence, roles)
         frames, posed = usable_frames(calibration, sequence, roles)
         frames = [f for f, ok in zip(frames, posed) if ok and sequence.recon_path(f).exists()]
-        if max_frames > 0 and len(frames) > max_frames:
-            frames = [frames[i] for i in np.linspace(0, len(frames) - 1, max_frames).round().astype(int)]
+        frames = evenly_spaced(frames, max_frames)
         for f in frames:
             vertices, faces = read_mesh(sequence.recon_path(f))
             caster = RayCaster(vertices, faces)

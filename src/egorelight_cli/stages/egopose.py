@@ -43,6 +43,7 @@ import torch
 from egorelight_cli import console
 from egorelight_cli.config import Config
 from egorelight_cli.errors import EgorelightError
+from egorelight_cli.sharding import evenly_spaced
 from egorelight_cli.geometry.mpjpe import mpjpe_cm
 from egorelight_cli.geometry.rotations import invert_rigid
 from egorelight_cli.structures.calibration import Calibration, HeadPoses
@@ -349,6 +350,7 @@ def train_egopose(frames: EgoFrames, mocap: Keypoints, rig: RigGeometry, setting
                               "head pose, both ego views and mocap")
     held_out = validation_count(len(rows), float(train_cfg.validation_fraction), int(train_cfg.min_validation_frames))
     val_rows, rows = rows[len(rows) - held_out:], rows[:len(rows) - held_out]
+    rows = evenly_spaced(rows, int(train_cfg.max_frames))
     data = frames.select(rows)
     target = make_targets(data, mocap, rig)
     net = EgoPoseNet(**settings.architecture())
