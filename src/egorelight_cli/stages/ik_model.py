@@ -122,7 +122,7 @@ def finger_of(character: Character, d: int) -> tuple[str, bool]:
 
 
 def synthetic_hand_poses(character: Character, dof_index: np.ndarray, num: int, rng: np.random.Generator,
-                         max_flexion_rad: float = np.radians(100.0)) -> np.ndarray:
+                         max_flexion_rad: float) -> np.ndarray:
     """(num, m) finger poses sampled within the DoF limits with anatomical coupling.
 
     A latent grasp ``g ~ Beta(0.7, 0.7)`` (0 open, 1 fist) drives every finger: finger curl
