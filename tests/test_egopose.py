@@ -332,8 +332,7 @@ def test_max_frames_trains_on_an_evenly_spaced_subset(tiny_capture, oracle_calib
     mocap = read_keypoints_npz(capture.sequence("ego_train").mocap_path())
     usable = int((frames.usable & np.isin(frames.frame_ids, mocap.frame_ids)).sum())
     assert usable >= 3
-    for max_frames, expected in ((2, 2), (0, usable)):
-        cfg = resolve_config("egopose", "tiny", ("train.steps=2", "train.temporal.steps=1", "train.batch=2",
-                                                 "net.channels=8", f"train.max_frames={max_frames}"))
-        result = train_egopose(frames, mocap, rig_geometry(capture, oracle_calibration), EgoPoseSettings(cfg))
-        assert result.info["training_frames"] == expected
+    cfg = resolve_config("egopose", "tiny", ("train.steps=2", "train.temporal.steps=1", "train.batch=2",
+                                             "net.channels=8", "train.max_frames=2"))
+    result = train_egopose(frames, mocap, rig_geometry(capture, oracle_calibration), EgoPoseSettings(cfg))
+    assert result.info["training_frames"] == 2
