@@ -129,6 +129,40 @@ def test_relight_under_another_light_recomputes_the_features_and_scores_nothing(
         assert not out.exists()
 
 
+def test_relight_into_named_and_virtual_cameras(tiny_capture, skinned_meshes, relight_inputs, relight_model,
+                                                tmp_path, capsys):
+    """A named studio camera is rendered and scored; a camera JSON that copies it under another
+    name renders the same images, unscored (it captured nothing); bad selections are one-line
+    errors with nothing written."""
+    sequence = json.loads((tiny_capture / "sequences" / "test" / "sequence.json").read_text())
+    name = sequence["held_out_cameras"][0]
+    entry = next(c for c in json.loads((tiny_capture / "rig" / "studio_cameras.json").read_text())["cameras"]
+                 if c["name"] == name)
+    (tmp_path / "virtual.json").write_text(json.dumps({**entry, "name": "orbit"}))
+    (tmp_path / "clash.json").write_text(json.dumps(entry))
+    common = ("--preset", "tiny", "-q", "relight", "--capture", tiny_capture, "--meshes", skinned_meshes / "test.npz",
+              "--uvmaps", relight_inputs / "uvmaps_test", "--model", relight_model, "--seq", "test")
+    assert _main(*common, "--cameras", name, "--out", tmp_path / "named") == 0
+    assert _main(*common, "--camera-json", tmp_path / "virtual.json", "--out", tmp_path / "virtual") == 0
+    named = json.loads((tmp_path / "named" / "manifest.json").read_text())["metrics"]
+    virtual = json.loads((tmp_path / "virtual" / "manifest.json").read_text())["metrics"]
+    assert named["cameras"] == [name] and np.isfinite(named["psnr"])
+    assert virtual["cameras"] == ["orbit"] and virtual["scored"].startswith("no") and "psnr" not in virtual
+    frames = sorted(p.name for p in (tmp_path / "named" / name).glob("*.exr"))
+    assert frames and frames == sorted(p.name for p in (tmp_path / "virtual" / "orbit").glob("*.exr"))
+    np.testing.assert_array_equal(read_exr(tmp_path / "named" / name / frames[0]).layer("", ("R", "G", "B")),
+                                  read_exr(tmp_path / "virtual" / "orbit" / frames[0]).layer("", ("R", "G", "B")))
+    capsys.readouterr()
+    for bad in (["--cameras", "nosuchcamera"], ["--camera-json", tmp_path / "clash.json"],
+                ["--cameras", "all", "--camera-json", tmp_path / "virtual.json"],
+                ["--camera-json", tmp_path / "missing.json"]):
+        out = tmp_path / "bad"
+        code = _main(*common[:2], *common[3:], *bad, "--out", out)
+        err = capsys.readouterr().err.strip()
+        assert code == 2 and len(err.splitlines()) == 1 and "egorelight: error:" in err, (bad, err)
+        assert not out.exists()
+
+
 @pytest.mark.parametrize("seq, lighting, counts", [
     ("relight_train", [], (2,)),    # its 2 HDR-lit frames, scored against the captured views
     ("test", ["--flat"], (2, 4)),   # every frame with a mesh (11), under a flat light: not scored

@@ -515,8 +515,11 @@ def train_relight(ctx: click.Context, capture: Path, meshes_path: Path, uvmaps_p
 @click.option("--model", "model_path", required=True, type=click.Path(path_type=Path), help="relight model (train relight).")
 @click.option("--character", default="default", show_default=True, help="Character artifact, .npz, .character or 'default'.")
 @click.option("--seq", "--sequence", "seq", default="test", show_default=True, help="Sequence to relight.")
-@click.option("--cameras", type=click.Choice(["held-out", "all"]), default="held-out", show_default=True,
-              help="Render into the held-out studio cameras or into all of them.")
+@click.option("--cameras", default="held-out", show_default=True, metavar="held-out|all|NAME[,NAME]",
+              help="Render into the held-out studio cameras, all of them, or the named ones.")
+@click.option("--camera-json", "camera_json", default=None, type=click.Path(path_type=Path, dir_okay=False),
+              help="Render into this virtual camera instead (name, model, K, dist, T_cam_from_world, width, height; "
+                   "not scored).")
 @click.option("--export", type=click.Choice(["none", "ply"]), default=None,
               help="Also write each frame's Gaussians as a standard 3DGS PLY under gaussians/.")
 @click.option("--flat", is_flag=True, help="Light every frame with the lightstage's flat lighting (not scored).")
@@ -529,16 +532,17 @@ def train_relight(ctx: click.Context, capture: Path, meshes_path: Path, uvmaps_p
 @common_options
 @click.pass_context
 def relight_command(ctx: click.Context, capture: Path, meshes_path: Path, uvmaps_path: Path, model_path: Path,
-                    character: str, seq: str, cameras: str, export: str | None, flat: bool, olat: int | None,
-                    envmap_path: Path | None, yaw: float, out: Path, frames: str | None, shard: str | None) -> None:
+                    character: str, seq: str, cameras: str, camera_json: Path | None, export: str | None, flat: bool,
+                    olat: int | None, envmap_path: Path | None, yaw: float, out: Path, frames: str | None,
+                    shard: str | None) -> None:
     """Render the relightable avatar under a sequence's lighting (or another) and score it against the captured images."""
-    from egorelight_cli.stages.relight_commands import LightingOverride
+    from egorelight_cli.stages.relight_commands import CameraSelection, LightingOverride
 
     if export is not None:  # a config key, so it enters the cache key and the manifest
         _options(ctx).sets.append(f"export={export}")
     lighting = LightingOverride.parse(flat, olat, envmap_path, yaw)
-    _relight_commands(ctx).predict(capture, meshes_path, uvmaps_path, model_path, character, seq, cameras == "all",
-                                   out, lighting, _frame_range(frames, shard))
+    _relight_commands(ctx).predict(capture, meshes_path, uvmaps_path, model_path, character, seq,
+                                   CameraSelection(cameras, camera_json), out, lighting, _frame_range(frames, shard))
 
 
 # -------------------------------------------------------------------------------- envmap

@@ -31,6 +31,7 @@ from egorelight_cli.artifacts import ArtifactWriter, open_artifact
 from egorelight_cli.config import Config
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.geometry.cameras import Camera
+from egorelight_cli.io.camera_json import read_camera_json
 from egorelight_cli.io.calibration import open_calibration, posed_ego_camera
 from egorelight_cli.io.capture import frame_file, open_capture
 from egorelight_cli.pipeline import StageRun
@@ -63,20 +64,6 @@ class View:
     camera: Camera
     studio_camera: Camera
     background: np.ndarray
-
-
-def _read_camera_json(path: Path) -> Camera:
-    try:
-        doc = json.loads(Path(path).read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise EgorelightError(f"cannot read the camera JSON ({exc})", path) from None
-    if not isinstance(doc, dict):
-        raise EgorelightError("camera JSON must be one object (name, model, K, dist, T_cam_from_world, width, "
-                              "height)", path)
-    try:
-        return Camera.from_dict({"name": "virtual", "dist": [], **doc})
-    except EgorelightError as exc:
-        raise EgorelightError(exc.message, path) from None
 
 
 def _background_sequence_frames(calibration, sequence, role: str, count: int) -> list[int]:
@@ -134,7 +121,7 @@ class CompositeCommands:
             if r not in capture.ego_cameras or r not in calibration.ego_cameras:
                 raise EgorelightError(f"--camera: the capture or the calibration has no HMD camera {r!r} (capture has "
                                       f"{', '.join(capture.ego_cameras) or 'none'})")
-        virtual = _read_camera_json(camera_json) if camera_json is not None else None
+        virtual = read_camera_json(camera_json) if camera_json is not None else None
         if role is not None:
             sequence.require_stream("ego")
         user2 = _background_sequence_frames(calibration, sequence, front, settings.frames if role else 1)

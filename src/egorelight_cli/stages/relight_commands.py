@@ -81,6 +81,50 @@ class LightingOverride:
         return None
 
 
+@dataclass(frozen=True)
+class CameraSelection:
+    """The cameras ``relight`` renders into: ``"held-out"`` (the sequence's held-out studio
+    cameras, default), ``"all"`` (every studio camera of the sequence), comma-separated studio
+    camera names, or one virtual camera from a camera JSON (:mod:`egorelight_cli.io.camera_json`;
+    it captured nothing, so its views are rendered, not scored)."""
+
+    spec: str = "held-out"
+    camera_json: Path | None = None
+
+    def resolve(self, capture: Capture, sequence) -> tuple[list[str], dict]:
+        """(camera names in render order, {name: virtual Camera} for a camera JSON)."""
+        if self.camera_json is not None:
+            if self.spec != "held-out":
+                raise EgorelightError(f"give --cameras or --camera-json, not both (--cameras {self.spec})")
+            from egorelight_cli.io.camera_json import read_camera_json
+
+            camera = read_camera_json(self.camera_json)
+            if camera.name in capture.studio_cameras:
+                raise EgorelightError(f"the virtual camera is named {camera.name!r} like a studio camera of the "
+                                      "capture; give it another name", self.camera_json)
+            return [camera.name], {camera.name: camera}
+        held_out = list(sequence.doc.get("held_out_cameras", []))
+        if self.spec == "held-out":
+            if not held_out:
+                raise EgorelightError(f"sequence {sequence.name!r} has no held-out cameras (use --cameras all)",
+                                      capture.root)
+            return held_out, {}
+        recorded = training_cameras(capture, sequence) + held_out
+        if self.spec == "all":
+            return recorded, {}
+        names = [n.strip() for n in self.spec.split(",") if n.strip()]
+        unknown = [n for n in names if n not in recorded]
+        if unknown or not names:
+            raise EgorelightError(f"--cameras {self.spec!r}: {', '.join(map(repr, unknown)) or 'no name'} is not a "
+                                  f"studio camera of sequence {sequence.name!r} (it has {', '.join(recorded)}; or "
+                                  "give held-out or all)", capture.root)
+        return list(dict.fromkeys(names)), {}
+
+    def key(self) -> str:
+        """Its cache-key entry (a camera JSON's content enters the key as a source file)."""
+        return "camera-json" if self.camera_json is not None else self.spec
+
+
 class RelightData:
     """Frames (uvmaps + meshes + lighting) and studio views of one sequence, loaded on demand."""
 
@@ -100,6 +144,19 @@ class RelightData:
         self._frames: dict[int, rl.RelightFrame] = {}
         self._lighting: dict[int, TexelLighting] = {}
         self._rays: dict[tuple[int, str], tuple[torch.Tensor, torch.Tensor]] = {}
+        #: cameras by name: the capture's studio cameras, plus any virtual ones (``add_virtual_cameras``)
+        self.cameras = dict(capture.studio_cameras)
+        self.virtual: set[str] = set()
+
+    def add_virtual_cameras(self, cameras: dict) -> None:
+        """Views from cameras no capture holds: rendered, never scored."""
+        self.cameras.update(cameras)
+        self.virtual |= set(cameras)
+
+    def scored(self, camera: str) -> bool:
+        """Whether views of ``camera`` are compared with a captured image: the sequence's own
+        lighting into a studio camera."""
+        return self.lighting is None and camera not in self.virtual
 
     def has_maps(self, frame_id: int) -> bool:
         return (self.uvmaps.root / map_path(frame_id)).is_file()
@@ -156,7 +213,7 @@ class RelightData:
     def view_rays(self, frame_id: int, camera: str) -> tuple[torch.Tensor, torch.Tensor]:
         key = (frame_id, camera)
         if key not in self._rays:
-            centre = self.capture.studio_cameras[camera].centre_world
+            centre = self.cameras[camera].centre_world
             self._rays[key] = rl.camera_rays(self.ray_lighting(frame_id), self.frame(frame_id).intensities, centre,
                                              self.lightstage, self.rays)
         return self._rays[key]
@@ -206,9 +263,9 @@ def evaluate(model: rl.RelightModel, data: RelightData, views: list[tuple[int, s
             rays, valid = data.view_rays(f, camera_name)
             head = torch.from_numpy(frame.head.astype(np.float32))[:, None]
             extra = {**baseline_passes(frame, data.coverage), "head": head}
-            render, avatar = rl.render_relit(model, frame, data.coverage, data.capture.studio_cameras[camera_name],
+            render, avatar = rl.render_relit(model, frame, data.coverage, data.cameras[camera_name],
                                              rays, valid, extra_passes=extra)
-            if data.lighting is None:
+            if data.scored(camera_name):
                 scores.start_view()
                 target, mask = data.target(f, camera_name)
                 tonemapped = score_view(scores, render, target, mask)
@@ -231,9 +288,12 @@ def evaluate(model: rl.RelightModel, data: RelightData, views: list[tuple[int, s
 
 
 def scored_metrics(scores: RelightScores, data: RelightData) -> dict:
-    """The metrics of ``scores`` (none under a lighting override: nothing was captured to compare)."""
+    """The metrics of ``scores`` (none under a lighting override or from a virtual camera: nothing
+    was captured to compare)."""
     if data.lighting is not None:
         return {"scored": f"no: lighting {data.lighting.entry['description']} was not captured"}
+    if data.virtual:
+        return {"scored": f"no: the virtual camera {', '.join(sorted(data.virtual))} captured nothing"}
     return scores.metrics()
 
 
@@ -360,14 +420,12 @@ class RelightCommands:
         return result
 
     def predict(self, capture_path: Path, meshes_path: Path, uvmaps_path: Path, model_path: Path,
-                character_spec: str, seq: str, all_cameras: bool, out: Path,
+                character_spec: str, seq: str, selection: CameraSelection, out: Path,
                 lighting: LightingOverride | None = None, frame_range: FrameRange = FrameRange()) -> Path:
         model, net, model_artifact = load_relight_model(model_path)
         data, frames, inputs = self._load(capture_path, meshes_path, uvmaps_path, character_spec, seq, net, lighting)
-        held_out = list(data.sequence.doc.get("held_out_cameras", []))
-        cameras = training_cameras(data.capture, data.sequence) + held_out if all_cameras else held_out
-        if not cameras:
-            raise EgorelightError(f"sequence {seq!r} has no held-out cameras (use --cameras all)", capture_path)
+        cameras, virtual = selection.resolve(data.capture, data.sequence)
+        data.add_virtual_cameras(virtual)
         start, stop = frame_range.bounds(len(frames))  # a shard renders the views of its frames
         views = [(int(f), c) for f in frames[start:stop] for c in cameras]
         first_view = start * len(cameras)
@@ -382,7 +440,7 @@ class RelightCommands:
             writer.metrics.update({"sequence": seq, "cameras": cameras, "views": len(views),
                                    **scored_metrics(scores, data)})
             rows = {"frame_ids": np.array([f for f, _ in views], np.int64), "camera": np.array([c for _, c in views]),
-                    **(scores.arrays() if lighting is None else {})}
+                    **(scores.arrays() if lighting is None and not virtual else {})}
             writer.save_npz(SCORES_NPZ, rows, rows=sorted(rows), units={"psnr": "dB", "ssim": "x100"},
                             description="per view (frame, camera): PSNR/SSIM of the render and its baselines "
                                         "(NaN: an empty scoring region); the metrics are their means")
@@ -395,6 +453,7 @@ class RelightCommands:
 
         light = None if lighting is None else {k: v for k, v in lighting.entry.items() if k != "description"}
         sources = [lighting.source] if lighting is not None and lighting.source is not None else []
+        sources += [Path(selection.camera_json)] if selection.camera_json is not None else []
         return self.run.produce(out, "renders", write, inputs=inputs + [model_artifact], source_files=sources,
-                                options={"sequence": seq, "cameras": "all" if all_cameras else "held-out",
-                                         "lighting": light, **frame_range.key()})
+                                options={"sequence": seq, "cameras": selection.key(), "lighting": light,
+                                         **frame_range.key()})
