@@ -23,6 +23,7 @@ ROOT = Path(__file__).resolve().parents[1]
 CHAIN = {
     "capture": "capture", "character": "character", "calibration": "calibration",
     "models/egopose": "model", "keypoints/test": "keypoints", "models/ik": "model", "motion/test": "motion",
+    "models/ik_default": "model", "motion_bootstrap/ego_train": "motion",
     "models/egodepth": "model", "pointcloud/test": "pointcloud", "models/animate": "model",
     "meshes/test": "meshes", "models/geolift": "model", "uvmaps/test": "uvmaps", "models/relight": "model",
     "renders/test": "renders", "renders_studio/test": "renders", "renders_truth/test": "renders",
@@ -58,6 +59,14 @@ def test_the_tiny_headset_calibrates_all_its_cameras(demo_subject):
     # against the simulator's truth: a usable calibration, if coarser than the cpu preset's
     assert metrics["handeye_rotation_error_deg_max"] < 5.0
     assert metrics["handeye_translation_error_mm_max"] < 40.0
+
+
+def test_the_ik_model_is_trained_on_the_captures_mocap(demo_subject):
+    subject, _ = demo_subject
+    model = json.loads((subject / "models" / "ik" / "manifest.json").read_text())["metrics"]
+    assert model["source"] == "motions" and model["training_frames"] > 0
+    motion = json.loads((subject / "motion" / "test" / "manifest.json").read_text())["metrics"]
+    assert motion["prior"] == "motions" and motion["prior_training_frames"] == model["training_frames"]
 
 
 def test_the_report_links_every_artifact_and_its_images_exist(demo_subject):
