@@ -12,6 +12,8 @@ between neighbouring bones within ``BLEND`` of each joint.
 
 from __future__ import annotations
 
+from collections import deque
+
 import numpy as np
 
 from egorelight_cli.geometry.embedded_graph import (
@@ -131,3 +133,27 @@ def make_character(rest_theta: np.ndarray | None = None, num_nodes: int = 20, ri
         segmentation_names={0: "background"},
         hand_segmentation=np.zeros(V, np.int64),
     )
+
+
+def one_rings(faces: np.ndarray, num_vertices: int) -> list[set[int]]:
+    """Each vertex's neighbours along the triangles' edges (a plain reference, no scipy)."""
+    rings = [set() for _ in range(num_vertices)]
+    for a, b, c in np.asarray(faces, dtype=np.int64).tolist():
+        rings[a] |= {b, c}
+        rings[b] |= {a, c}
+        rings[c] |= {a, b}
+    return rings
+
+
+def bfs_hops(rings: list[set[int]], source: int) -> np.ndarray:
+    """(V,) breadth-first hop counts from ``source`` over ``rings`` (``inf`` where unreachable)."""
+    hops = np.full(len(rings), np.inf)
+    hops[source] = 0
+    queue = deque([source])
+    while queue:
+        u = queue.popleft()
+        for w in rings[u]:
+            if hops[w] == np.inf:
+                hops[w] = hops[u] + 1
+                queue.append(w)
+    return hops

@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from geometry_synthetic import bfs_hops, one_rings
 
 from egorelight_cli.geometry.embedded_graph import build_embedded_graph, pose_character
 from egorelight_cli.geometry.skeleton import forward_kinematics, keypoint_positions
@@ -85,14 +86,8 @@ def reference_graph_links(template: np.ndarray, faces: np.ndarray, graph_vertice
     vertex binds to the nearest unused template vertex; breadth-first hops from it; radius
     max(max hops over the template one-ring of that vertex // 2, 3); vertex v links to the nodes
     with hops/r <= 1 (else <= 2), weights exp(-0.5 (hops/r)^2) normalised."""
-    from collections import deque
-
     V = len(template)
-    ring = [set() for _ in range(V)]
-    for a, b, c in faces:
-        ring[a] |= {b, c}
-        ring[b] |= {a, c}
-        ring[c] |= {a, b}
+    ring = one_rings(faces, V)
     used = np.zeros(V, bool)
     node_vertex, hops, radius = [], [], []
     for p in graph_vertices:
@@ -100,15 +95,7 @@ def reference_graph_links(template: np.ndarray, faces: np.ndarray, graph_vertice
         v = int(np.argmin(d))
         used[v] = True
         node_vertex.append(v)
-        h = np.full(V, np.inf)
-        h[v] = 0
-        queue = deque([v])
-        while queue:
-            u = queue.popleft()
-            for w in ring[u]:
-                if h[w] == np.inf:
-                    h[w] = h[u] + 1
-                    queue.append(w)
+        h = bfs_hops(ring, v)
         hops.append(h)
         radius.append(max(max(h[u] for u in ring[v]) // 2, 3))
     ratio = np.array(hops) / np.array(radius)[:, None]

@@ -2,9 +2,6 @@
 
 from __future__ import annotations
 
-import math
-from collections import deque
-
 import geometry_synthetic as synth
 import numpy as np
 import pytest
@@ -37,21 +34,7 @@ def strip(cols: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def bfs(faces, V, src):
-    nbrs = [set() for _ in range(V)]
-    for f in faces:
-        for i in range(3):
-            nbrs[f[i]].add(f[(i + 1) % 3])
-            nbrs[f[(i + 1) % 3]].add(f[i])
-    dist = [math.inf] * V
-    dist[src] = 0
-    q = deque([src])
-    while q:
-        u = q.popleft()
-        for w in nbrs[u]:
-            if dist[w] == math.inf:
-                dist[w] = dist[u] + 1
-                q.append(w)
-    return np.array(dist)
+    return synth.bfs_hops(synth.one_rings(faces, V), src)
 
 
 def dense_weights(graph, V):
