@@ -26,7 +26,7 @@ MAKE_JOBS = $(patsubst -j%,%,$(filter -j%,$(MAKEFLAGS)))
 THREADS  ?= $(if $(filter -j%,$(MAKEFLAGS)),$(shell expr $$(nproc) / $(or $(MAKE_JOBS),$$(nproc)) \| 1))
 EGOFLAGS ?= --preset $(PRESET) $(if $(THREADS),--threads $(THREADS))
 
-.PHONY: all venv demo demo-results test bench clean distclean subject relight-rows
+.PHONY: all venv demo demo-results test bench readme clean distclean subject relight-rows
 
 all: demo
 
@@ -44,6 +44,10 @@ test: $(STAMP)
 
 bench: $(STAMP)
 	$(BIN)/python bench/run.py
+
+# the README's command table, from the stage declarations (src/egorelight_cli/declarations.py)
+readme: $(STAMP)
+	$(BIN)/python -m egorelight_cli.declarations README.md
 
 # ---------------------------------------------------------------- subject DAG
 CAPTURE   := $(SUBJECT)/capture/manifest.json

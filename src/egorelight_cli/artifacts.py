@@ -418,7 +418,8 @@ class ArtifactWriter:
     SINGLE_FILE_SUFFIXES = (".npz", ".exr", ".png", ".json", ".obj", ".ply")
 
     def __init__(self, out: str | Path, kind: str, stage: str, config: Any = None,
-                 inputs: list[Artifact] | tuple[Artifact, ...] = (), key: str | None = None, keep: bool = True):
+                 inputs: list[Artifact] | tuple[Artifact, ...] = (), key: str | None = None, keep: bool = True,
+                 input_params: list[str | None] | None = None):
         self.out = Path(out)
         self.keep = keep
         self.kind = kind
@@ -427,6 +428,7 @@ class ArtifactWriter:
         self.config = config.to_dict() if hasattr(config, "to_dict") else dict(config or {})
         self.stage_version = int(getattr(config, "version", 1))
         self.inputs = list(inputs)
+        self.input_params = list(input_params) if input_params is not None else [None] * len(self.inputs)
         self.cache_key = key or cache_key(stage, self.stage_version, self.config, [a.digest for a in self.inputs])
         self.single_file = self.out.suffix.lower() in self.SINGLE_FILE_SUFFIXES
         self.metrics: dict[str, Any] = {}
@@ -501,7 +503,8 @@ class ArtifactWriter:
             "tool_version": __version__,
             "cache_key": self.cache_key,
             "config": self.config,
-            "inputs": [a.as_input(self.manifest_dir) for a in self.inputs],
+            "inputs": [_with_param(a.as_input(self.manifest_dir), param)
+                       for a, param in zip(self.inputs, self.input_params)],
             "outputs": self._outputs(),
             "metrics": _jsonable(self.metrics),
             "timing": _jsonable(self.timing),
@@ -564,6 +567,11 @@ class ArtifactWriter:
         else:
             self.abort()
         return False
+
+
+def _with_param(entry: dict, param: str | None) -> dict:
+    """A manifest ``inputs`` entry labelled with the declared input it came through (``--motion``)."""
+    return {**entry, "param": param} if param is not None else entry
 
 
 def _jsonable(value: Any) -> Any:

@@ -9,16 +9,28 @@ Each stage has ``stages/<stage>.yaml``::
       tiny: {...}             # overrides for CI (seconds on 2 cores)
       cpu: {...}              # the demo (minutes on a laptop CPU)
       paper: {...}            # the paper's settings (CUDA GPU)
+    checks:                   # allowed values (optional), per dotted key or glob (``weights.*``)
+      lm.iterations: {min: 1}
+      solver: {one_of: [lm, lbfgs]}
 
 Resolution order: defaults, then the preset, then ``--set key.sub=value`` overrides, then
 ``--seed``. Every override must name an existing key and keep its type (an int stays an int, a
-float accepts an int, a list stays a list); anything else is an :class:`EgorelightError` that
-lists the valid keys. The result is a frozen :class:`Config`.
+float accepts an int, a list stays a list), and the result must pass the file's ``checks``
+(:data:`CHECK_RULES`); anything else is an :class:`EgorelightError` naming the key. The result is
+a frozen :class:`Config`.
+
+The file is the one place a stage's defaults live: a settings dataclass that mirrors a section
+takes its field defaults from it with :func:`setting` and is built with
+:func:`settings_from_config`.
 """
 
 from __future__ import annotations
 
 import copy
+import dataclasses
+import fnmatch
+import functools
+import math
 from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
@@ -96,7 +108,128 @@ def load_stage_file(stage: str) -> dict[str, Any]:
     missing = [p for p in PRESETS if p not in presets]
     if missing:
         raise EgorelightError(f"stage config lacks presets {missing}", path)
+    checks = doc.get("checks") or {}
+    keys = flatten(doc["defaults"])
+    for pattern, rule in checks.items():
+        if not isinstance(rule, dict) or not rule or set(rule) - set(CHECK_RULES):
+            raise EgorelightError(f"checks.{pattern}: a mapping of {', '.join(CHECK_RULES)}", path)
+        if not fnmatch.filter(keys, pattern):
+            raise EgorelightError(f"checks.{pattern} matches no key of 'defaults'", path)
+    doc["checks"] = checks
     return doc
+
+
+# ------------------------------------------------------------------------------------ checks
+#: rule -> (test of one value, what it says when the value fails it)
+CHECK_RULES = {
+    "min": (lambda v, b: v >= b, "at least {}"),
+    "above": (lambda v, b: v > b, "above {}"),
+    "max": (lambda v, b: v <= b, "at most {}"),
+    "below": (lambda v, b: v < b, "below {}"),
+    "one_of": (lambda v, b: v in b, "one of {}"),
+    "not_empty": (lambda v, b: True, "not empty"),
+}
+
+
+def check_value(key: str, value: Any, rule: Mapping[str, Any], origin: str = "") -> None:
+    """Raise an :class:`EgorelightError` naming ``key`` unless ``value`` passes ``rule`` (a list
+    passes when every item does; ``null`` and the text ``auto`` pass the numeric rules)."""
+    where = f" ({origin})" if origin else ""
+    items = list(value) if isinstance(value, (list, tuple)) else [value]
+    if rule.get("not_empty") and not items:
+        raise EgorelightError(f"config key {key!r} must not be empty{where}")
+    for name, bound in rule.items():
+        test, says = CHECK_RULES[name]
+        for item in items:
+            numeric = name in ("min", "above", "max", "below")
+            if numeric and (item is None or item == "auto"):
+                continue
+            if numeric and isinstance(item, str):  # a text key that also takes numbers ("auto" or 1.6)
+                try:
+                    item = float(item)
+                except ValueError:
+                    pass
+            bad = numeric and (isinstance(item, bool) or not isinstance(item, (int, float)) or math.isnan(item))
+            if bad or not test(item, bound):
+                shown = ", ".join(map(str, bound)) if name == "one_of" else bound
+                raise EgorelightError(f"config key {key!r} must be {says.format(shown)}, got {value!r}{where}")
+
+
+def check_config(flat: Mapping[str, Any], checks: Mapping[str, Mapping], origin: str = "") -> None:
+    """Every key of the flattened config ``flat`` against the rules whose pattern it matches."""
+    for pattern, rule in checks.items():
+        for key in fnmatch.filter(flat, pattern):
+            check_value(key, flat[key], rule, origin)
+
+
+# ---------------------------------------------------------------------- settings dataclasses
+@functools.lru_cache(maxsize=None)
+def _stage_defaults(stage: str) -> dict[str, Any]:
+    return load_stage_file(stage)["defaults"]
+
+
+@functools.lru_cache(maxsize=None)
+def _stage_checks(stage: str) -> dict[str, Any]:
+    return load_stage_file(stage)["checks"]
+
+
+def setting(stage: str, key: str, default: Any = dataclasses.MISSING) -> Any:
+    """A dataclass field mirroring config key ``key`` of ``stages/<stage>.yaml``, its default taken
+    from that file (a list becomes a tuple, a mapping a fresh dict) unless given (``seed``)."""
+    value = _lookup(_stage_defaults(stage), key, {}, default) if default is not dataclasses.MISSING else \
+        _lookup(_stage_defaults(stage), key, {}, KeyError)
+    if value is KeyError:
+        raise KeyError(f"stages/{stage}.yaml has no default for {key!r}")
+    metadata = {"stage": stage, "key": key}
+    if isinstance(value, Mapping):
+        return dataclasses.field(default_factory=lambda: dict(value), metadata=metadata)
+    return dataclasses.field(default=tuple(value) if isinstance(value, list) else value, metadata=metadata)
+
+
+def settings_from_config(cls: type, cfg: Mapping[str, Any]) -> Any:
+    """An instance of the settings dataclass ``cls`` (fields made with :func:`setting`) from a
+    resolved config, each value in its default's type."""
+    flat = flatten(cfg)
+    values = {}
+    for f in dataclasses.fields(cls):
+        key = f.metadata.get("key")
+        if key is None:
+            continue
+        default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
+        value = _lookup(cfg, key, flat, default)
+        if isinstance(default, dict):
+            values[f.name] = {k: type(default.get(k, v))(v) for k, v in dict(value).items()}
+        elif isinstance(default, tuple):
+            values[f.name] = tuple(value)
+        elif default is None or value is None:
+            values[f.name] = value
+        else:
+            values[f.name] = type(default)(value)
+    return cls(**values)
+
+
+def _lookup(cfg: Mapping[str, Any], key: str, flat: Mapping[str, Any], default: Any) -> Any:
+    if key in flat:
+        return flat[key]
+    node: Any = cfg
+    for part in key.split("."):
+        if not isinstance(node, Mapping) or part not in node:
+            return default
+        node = node[part]
+    return node
+
+
+def check_settings(settings: Any) -> None:
+    """Check every :func:`setting` field of a settings dataclass against its stage file's checks
+    (for settings built in code rather than resolved from a config)."""
+    for f in dataclasses.fields(settings):
+        stage, key = f.metadata.get("stage"), f.metadata.get("key")
+        if stage is None:
+            continue
+        value = getattr(settings, f.name)
+        for pattern, rule in _stage_checks(stage).items():
+            if fnmatch.fnmatch(key, pattern):
+                check_value(key, value, rule, f"stages/{stage}.yaml")
 
 
 def flatten(data: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
@@ -191,4 +324,5 @@ def resolve_config(
         _assign(tree, key, value, valid, "--set", raw)
     if seed is not None:
         tree["seed"] = int(seed)
+    check_config(flatten(tree), doc["checks"], f"stages/{stage}.yaml")
     return Config(tree, stage=stage, version=int(doc["version"]), preset=preset)

@@ -12,7 +12,7 @@ from __future__ import annotations
 import os
 import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -22,6 +22,7 @@ from egorelight_cli.config import Config, resolve_config
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.outputs import check_output
 from egorelight_cli.runtime import apply_threads, available_cores, resolve_device
+from egorelight_cli.stage_spec import Command
 
 
 @dataclass(frozen=True)
@@ -36,6 +37,10 @@ class StageRun:
     device: str = "auto"
     threads: int | None = None  # --threads; None: runtime.available_cores()
     training: bool = False  # a `train <stage>` command: may run data-parallel under torchrun
+    #: the declaration of the command this run serves (:mod:`egorelight_cli.declarations`) and its parsed
+    #: command-line values: its keyed options enter the cache key, its inputs label the manifest's
+    command: Command | None = None
+    values: Mapping[str, Any] = field(default_factory=dict, compare=False)
 
     def config(self) -> Config:
         return resolve_config(self.stage, self.preset, self.sets, self.seed)
@@ -57,7 +62,14 @@ class StageRun:
                 raise EgorelightError("input file not found", path)
             sources.append({"path": str(path), "digest": cached_sha256_file(path)})
         digests = [a.digest for a in inputs] + [s["digest"] for s in sources]
-        return cache_key(self.stage, config.version, _keyed_config(config, options), digests), sources
+        return cache_key(self.stage, config.version, _keyed_config(config, self.options(options)), digests), sources
+
+    def options(self, explicit: Mapping[str, Any] | None = None) -> dict[str, Any]:
+        """The options that enter the cache key and ``config.options``: the declared command's keyed
+        options (:meth:`~egorelight_cli.stage_spec.Command.keyed_options`), then the ones the
+        command derives itself (``explicit``, e.g. a parsed lighting), which win on a shared name."""
+        declared = self.command.keyed_options(self.values) if self.command is not None else {}
+        return {**declared, **(explicit or {})}
 
     def up_to_date(self, out: str | Path, kind: str, inputs: Sequence[Artifact] = (),
                    source_files: Sequence[str | Path] = (), options: Mapping[str, Any] | None = None) -> bool:
@@ -103,9 +115,13 @@ class StageRun:
         group = self._join_process_group(device)
         key, sources = self.cache_key(inputs, source_files, options)
         started = time.perf_counter()
+        params = (self.command.input_params(self.values, inputs, [Path(p) for p in source_files])
+                  if self.command is not None else None)
         with ArtifactWriter(out, kind=kind, stage=self.stage, config=config, inputs=inputs, key=key,
-                            keep=group is None or group.primary) as writer:
-            writer.config = _keyed_config(config, options)
+                            keep=group is None or group.primary, input_params=params) as writer:
+            writer.config = _keyed_config(config, self.options(options))
+            if self.command is not None:
+                writer.runtime["command"] = self.command.name
             if sources:
                 writer.extra["sources"] = sources
             writer.runtime["device"] = device.type

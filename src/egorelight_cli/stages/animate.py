@@ -29,14 +29,15 @@ same network fine-tuned with ``xi = 0`` on the flat-lit frames of ``relight_trai
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
 from egorelight_cli import console
-from egorelight_cli.config import Config
+from egorelight_cli.config import Config, setting, settings_from_config
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.geometry.depth_encoding import SkinnedTemplate, encode_depth, skinned_template
 from egorelight_cli.geometry.embedded_graph import embedded_deformation, mesh_edges, node_positions, pose_through_graph
@@ -55,26 +56,26 @@ XI_CHANNELS = slice(18, 22)
 
 
 # ------------------------------------------------------------------------------ settings
+_net = partial(setting, "animate")  # every default lives in stages/animate.yaml
+
+
 @dataclass(frozen=True)
 class NetSettings:
-    """Architecture (stored in the model artifact)."""
+    """Architecture (``net.*``; stored in the model artifact)."""
 
-    uv_resolution: int = 128
-    base_channels: int = 32
-    levels: int = 3
-    node_level_downsample: int = 2
-    hidden: int = 64
-    rotation_scale: float = 0.1
-    translation_scale: float = 0.02
-    offset_scale: float = 0.01
-    depth_skip: bool = True
+    uv_resolution: int = _net("net.uv_resolution")
+    base_channels: int = _net("net.base_channels")
+    levels: int = _net("net.levels")
+    node_level_downsample: int = _net("net.node_level_downsample")
+    hidden: int = _net("net.hidden")
+    rotation_scale: float = _net("net.rotation_scale")
+    translation_scale: float = _net("net.translation_scale")
+    offset_scale: float = _net("net.offset_scale")
+    depth_skip: bool = _net("net.depth_skip")
 
     @classmethod
     def from_config(cls, cfg: Config) -> "NetSettings":
-        net = cfg["net"]
-        return cls(int(net["uv_resolution"]), int(net["base_channels"]), int(net["levels"]),
-                   int(net["node_level_downsample"]), int(net["hidden"]), float(net["rotation_scale"]),
-                   float(net["translation_scale"]), float(net["offset_scale"]), bool(net["depth_skip"]))
+        return settings_from_config(cls, cfg)
 
     def build_net(self) -> AnimationNet:
         """A fresh AnimationNet of this architecture."""
@@ -88,37 +89,35 @@ class NetSettings:
 
 @dataclass(frozen=True)
 class DepthSettings:
-    """Depth encoding thresholds."""
+    """Depth encoding thresholds (``depth.*``)."""
 
-    eps_d: float = 0.03
-    eps_n: float = 0.5
+    eps_d: float = _net("depth.eps_d")
+    eps_n: float = _net("depth.eps_n")
 
     @classmethod
     def from_config(cls, cfg: Config) -> "DepthSettings":
-        return cls(float(cfg["depth"]["eps_d"]), float(cfg["depth"]["eps_n"]))
+        return settings_from_config(cls, cfg)
 
 
 @dataclass(frozen=True)
 class TrainSettings:
-    steps: int = 200
-    batch: int = 2
-    lr: float = 1e-3
-    depth_dropout: float = 0.25
-    target_points: int = 6000
-    weights: dict = field(default_factory=lambda: {"eg": 1.0, "delta": 1.0, "arap": 0.05, "spatial": 1.0, "iso": 1.0})
-    min_normal_dot: float = 0.5
-    max_distance: float = 0.08
-    point_to_plane: bool = True
-    log_every: int = 10
-    seed: int = 0
+    """``train.*``."""
+
+    steps: int = _net("train.steps")
+    batch: int = _net("train.batch")
+    lr: float = _net("train.lr")
+    depth_dropout: float = _net("train.depth_dropout")
+    target_points: int = _net("train.target_points")
+    weights: dict = _net("train.weights")
+    min_normal_dot: float = _net("train.min_normal_dot")
+    max_distance: float = _net("train.max_distance")
+    point_to_plane: bool = _net("train.point_to_plane")
+    log_every: int = _net("train.log_every")
+    seed: int = _net("seed", 0)
 
     @classmethod
     def from_config(cls, cfg: Config) -> "TrainSettings":
-        t = cfg["train"]
-        return cls(int(t["steps"]), int(t["batch"]), float(t["lr"]), float(t["depth_dropout"]),
-                   int(t["target_points"]), {k: float(v) for k, v in dict(t["weights"]).items()},
-                   float(t["min_normal_dot"]), float(t["max_distance"]), bool(t["point_to_plane"]),
-                   int(t["log_every"]), int(cfg["seed"]))
+        return settings_from_config(cls, cfg)
 
 
 # ---------------------------------------------------------------------------- the model

@@ -192,8 +192,7 @@ class AnimateCommands:
                                    "final_loss": curve[-1]["loss"] if curve else None})
             writer.units.update({"train_chamfer_cm": "cm (normal-filtered two-sided Chamfer, full mesh)"})
 
-        produced = self.run.produce(out, "model", write, inputs=inputs, source_files=sources,
-                                    options={"sequence": sequence, "no_depth": bool(no_depth)})
+        produced = self.run.produce(out, "model", write, inputs=inputs, source_files=sources)
         checkpoint.unlink(missing_ok=True)
         return produced
 
@@ -213,8 +212,7 @@ class AnimateCommands:
         inputs = [a for a in (character_artifact, motion_artifact, cloud_artifact, model_artifact, capture_artifact,
                               calibration_artifact) if a is not None]
         sources = character_sources(character_spec, character_artifact) + lone
-        options = {"sequence": sequence, "no_depth": bool(no_depth)}
-        if self.run.up_to_date(out, "meshes", inputs, sources, options):
+        if self.run.up_to_date(out, "meshes", inputs, sources):
             return Path(out)
         from egorelight_cli.stages.animate import previous_rows
 
@@ -246,7 +244,7 @@ class AnimateCommands:
             if not writer.single_file:
                 _write_preview(writer, character, meshes, distances, capture, calibration, sequence, cfg)
 
-        return self.run.produce(out, "meshes", write, inputs=inputs, source_files=sources, options=options)
+        return self.run.produce(out, "meshes", write, inputs=inputs, source_files=sources)
 
 
 # ---------------------------------------------------------------------------------- scoring
@@ -391,3 +389,15 @@ def _write_preview(writer: ArtifactWriter, character: Character, meshes: MeshSeq
         cv2.putText(image, "colour: distance to true mesh, blue 0 -> red 2 cm", (4, image.shape[0] - 5),
                     cv2.FONT_HERSHEY_SIMPLEX, 0.35, (0, 0, 0), 1, cv2.LINE_AA)
     write_image(writer.path(PREVIEW_PNG), image)
+
+
+# ------------------------------------------------------------- handlers (egorelight_cli.declarations)
+def train_command(run: StageRun, capture: Path, motion: Path, pointcloud: Path | None, character: str,
+                  init: Path | None, sequence: str, no_depth: bool, resume: bool, out: Path) -> Path:
+    return AnimateCommands(run).train(capture, sequence, motion, pointcloud, character, init, no_depth, out, resume)
+
+
+def animate_command(run: StageRun, motion: Path, pointcloud: Path | None, model: Path, character: str,
+                    capture: Path | None, calibration: Path | None, sequence: str, no_depth: bool, out: Path) -> Path:
+    return AnimateCommands(run).animate(motion, pointcloud, model, character, capture, sequence, calibration, no_depth,
+                                        None, out)

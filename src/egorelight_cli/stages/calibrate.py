@@ -379,3 +379,8 @@ class CalibrateCommand:
         capture, artifact = open_capture(capture_path)
         return self.run.produce(out, "calibration", lambda w, cfg: write_calibration_artifact(w, cfg, capture),
                                 inputs=[artifact])
+
+
+def calibrate_command(run: StageRun, capture: Path, out: Path) -> Path:
+    """``egorelight calibrate`` (declared in :mod:`egorelight_cli.declarations`)."""
+    return CalibrateCommand(run)(capture, out)

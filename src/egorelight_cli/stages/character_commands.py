@@ -217,3 +217,28 @@ def character_sources(spec: str, artifact: Artifact | None) -> list[Path]:
 
         return ddc_character_files(path)
     return [path]
+
+
+# ------------------------------------------------------------- handlers (egorelight_cli.declarations)
+def default_command(run: StageRun, out: Path) -> Path:
+    return CharacterCommands(run).default(out)
+
+
+def from_makehuman_command(run: StageRun, data_dir: Path | None, out: Path) -> Path:
+    return CharacterCommands(run).from_makehuman(out, data_dir)
+
+
+def import_ddc_command(run: StageRun, path: Path, out: Path) -> Path:
+    return CharacterCommands(run).import_ddc(path, out)
+
+
+def export_ddc_command(run: StageRun, character: Path, name: str, out: Path) -> Path:
+    return CharacterCommands(run).export_ddc(character, out, name)
+
+
+def fit_scan_command(run: StageRun, scan: Path, character: str, out: Path) -> Path:
+    return CharacterCommands(run).fit_scan(scan, character, out)
+
+
+def preview_command(run: StageRun, character: Path, out: Path) -> Path:
+    return CharacterCommands(run).preview(character, out)

@@ -88,7 +88,7 @@ class CompositeCommands:
                 role: str | None, camera_json: Path | None, place: str, out: Path) -> Path:
         from egorelight_cli.nn.colour_model import RootPolynomialColour
         from egorelight_cli.render.envmaps import load_envmap
-        from egorelight_cli.stages.character_commands import load_character
+        from egorelight_cli.stages.character_commands import character_sources, load_character
         from egorelight_cli.stages.envmap_inverse import EgoAvatarData
         from egorelight_cli.stages.geolift_commands import load_character_meshes
         from egorelight_cli.stages.relight_commands import load_relight_model
@@ -127,8 +127,10 @@ class CompositeCommands:
         user2 = _background_sequence_frames(calibration, sequence, front, settings.frames if role else 1)
         inputs = [a for a in (capture_artifact, calibration_artifact, envmap_artifact, character_artifact,
                               model_artifact, meshes_artifact, uvmaps) if a is not None]
-        options = {"sequence": seq, "avatar_sequence": avatar.sequence, "camera": role or "virtual", "place": place}
+        options = {"camera": role or "virtual"}  # the other options enter the key from the declaration
         sources = [camera_json] if camera_json is not None else []
+        sources += character_sources(avatar.character, character_artifact)
+        sources += [] if meshes_artifact else [Path(avatar.meshes)]
         if self.run.up_to_date(out, "composite", inputs, sources, options):
             return Path(out)
         eye = settings.eye_height_m if settings.eye_height_m is not None else (
@@ -275,3 +277,12 @@ def _render_row(model, data, views: list[View], light: torch.Tensor, colour, set
         residuals.append(residual)
         masks.append(alpha > 0.5)
     return out, residuals, masks
+
+
+def composite_command(run: StageRun, meshes: Path, uvmaps: Path, model: Path, character: str, capture: Path,
+                      calibration: Path, envmap: Path, camera_json: Path | None, avatar_sequence: str, sequence: str,
+                      camera: str | None, place: str, out: Path) -> Path:
+    """``egorelight composite`` (declared in :mod:`egorelight_cli.declarations`)."""
+    avatar = AvatarInputs(meshes, uvmaps, model, character, avatar_sequence)
+    return CompositeCommands(run).predict(capture, calibration, envmap, avatar, sequence, camera, camera_json, place,
+                                          out)

@@ -151,12 +151,11 @@ class EgodepthCommands:
         sequence = capture.sequence(seq)
         inputs = [capture_artifact, calibration_artifact]
         sources = [backbone / "config.json"] if backbone is not None else []
-        options = {"sequence": sequence.name, **frame_range.key()}
         if method == "net":
             if model_path is None:
                 raise EgorelightError("egodepth --method net needs --model (a `train egodepth` artifact)")
             inputs.append(open_artifact(model_path, kind="model"))
-        if self.run.up_to_date(out, "pointcloud", inputs, sources, options):
+        if self.run.up_to_date(out, "pointcloud", inputs, sources):
             return Path(out)
         from egorelight_cli.stages import egodepth as ed
 
@@ -184,7 +183,7 @@ class EgodepthCommands:
             _predict_sequence(writer, cfg, capture, calibration, sequence, roles, frames, posed, method, model, masks,
                               device, prior, frame_range)
 
-        return self.run.produce(out, "pointcloud", write, inputs=inputs, source_files=sources, options=options)
+        return self.run.produce(out, "pointcloud", write, inputs=inputs, source_files=sources)
 
 
 def _predict_sequence(writer: ArtifactWriter, cfg: Config, capture: Capture, calibration: Calibration, sequence,
@@ -270,3 +269,14 @@ def _predict_sequence(writer: ArtifactWriter, cfg: Config, capture: Capture, cal
     writer.timing.update({"depth_ms_per_frame": round(1000 * timing["depth_s"] / max(done, 1), 2),
                           "pointcloud_ms_per_frame": round(1000 * timing["pointcloud_s"] / max(done, 1), 2)})
     writer.units.update({"depth": "m (axial z, EXR channel Z)", "points": "m"})
+
+
+# ------------------------------------------------------------- handlers (egorelight_cli.declarations)
+def train_command(run: StageRun, capture: Path, calibration: Path, backbone: Path | None, resume: bool,
+                  out: Path) -> Path:
+    return EgodepthCommands(run).train(capture, calibration, out, backbone, resume)
+
+
+def egodepth_command(run: StageRun, capture: Path, calibration: Path, model: Path | None, backbone: Path | None,
+                     sequence: str, out: Path, frame_range: FrameRange) -> Path:
+    return EgodepthCommands(run).predict(capture, calibration, model, sequence, out, None, backbone, frame_range)

@@ -127,7 +127,6 @@ class EgoPoseCommands:
         inputs = [a for a in (capture_artifact, calibration_artifact) if a is not None]
         sources = [info.mocap_path()] + ([Path(backbone_weights)] if backbone_weights is not None else [])
         checkpoint_dir = checkpoint_beside(out, "")
-        options = {"sequence": sequence}
 
         def write(writer: ArtifactWriter, cfg: Config) -> None:
             from egorelight_cli.io.model import ModelPayload, write_model
@@ -152,7 +151,7 @@ class EgoPoseCommands:
             writer.metrics.update(_training_fit(result, frames, mocap, rig, settings))
             writer.metrics.update(_held_out_metrics(capture, calibration, result, rig, settings))
 
-        produced = self.run.produce(out, "model", write, inputs=inputs, source_files=sources, options=options)
+        produced = self.run.produce(out, "model", write, inputs=inputs, source_files=sources)
         if checkpoint_dir.exists():
             shutil.rmtree(checkpoint_dir, ignore_errors=True)  # every torchrun rank gets here
         return produced
@@ -164,8 +163,7 @@ class EgoPoseCommands:
         capture.sequence(sequence).require_stream("ego")
         inputs = [a for a in (capture_artifact, calibration_artifact, open_artifact(model_path, kind="model"))
                   if a is not None]
-        options = {"sequence": sequence, **frame_range.key()}
-        if self.run.up_to_date(out, "keypoints", inputs, options=options):
+        if self.run.up_to_date(out, "keypoints", inputs):
             return Path(out)
         model, _ = load_egopose_model(model_path)
         from egorelight_cli.sharding import write_preview
@@ -211,7 +209,7 @@ class EgoPoseCommands:
                                    int(cfg.preview.tile))
             write_preview(writer, dict(zip(shown, images)), frame_range, PREVIEW_PNG)
 
-        return self.run.produce(out, "keypoints", write, inputs=inputs, options=options)
+        return self.run.produce(out, "keypoints", write, inputs=inputs)
 
 
 def _training_fit(result: TrainResult, frames, mocap, rig, settings: EgoPoseSettings) -> dict:
@@ -238,3 +236,14 @@ def _held_out_metrics(capture: Capture, calibration: Calibration, result: TrainR
     frames = load_frames(capture, calibration, sequence, int(settings.cfg.input_size))
     prediction = predict(result.net, frames, rig, float(settings.cfg.confidence_sigma_m))
     return evaluate(prediction, frames, truth, result.mean_pose_heading, prefix=f"{sequence}_")
+
+
+# ------------------------------------------------------------- handlers (egorelight_cli.declarations)
+def train_command(run: StageRun, capture: Path, calibration: Path, backbone_weights: Path | None,
+                  sequence: str | None, resume: bool, out: Path) -> Path:
+    return EgoPoseCommands(run).train(capture, calibration, out, sequence, backbone_weights, resume)
+
+
+def egopose_command(run: StageRun, capture: Path, calibration: Path, model: Path, sequence: str, out: Path,
+                    frame_range: FrameRange) -> Path:
+    return EgoPoseCommands(run).egopose(capture, calibration, model, sequence, out, frame_range)

@@ -60,17 +60,9 @@ class PanoramaSettings:
     @classmethod
     def from_config(cls, cfg) -> PanoramaSettings:
         p = cfg.panorama
-        settings = cls(tuple(cfg.roles), int(p.frames), float(p.scan_s), int(p.height), bool(p.centre_weight),
-                       float(p.proxy_radius_m), str(cfg.inpaint.method), float(cfg.inpaint.radius_px))
-        if not settings.roles:
-            raise EgorelightError("envmap needs at least one camera role (config key roles)")
-        if settings.frames < 1:
-            raise EgorelightError(f"panorama.frames must be at least 1, got {settings.frames}")
-        if settings.height < 4:
-            raise EgorelightError(f"panorama.height must be at least 4, got {settings.height}")
-        if settings.scan_s < 0 or settings.proxy_radius_m < 0:
-            raise EgorelightError("panorama.scan_s and panorama.proxy_radius_m must be non-negative")
-        return settings
+        # value ranges: the checks of stages/envmap.yaml
+        return cls(tuple(cfg.roles), int(p.frames), float(p.scan_s), int(p.height), bool(p.centre_weight),
+                   float(p.proxy_radius_m), str(cfg.inpaint.method), float(cfg.inpaint.radius_px))
 
 
 @dataclass(frozen=True)

@@ -40,6 +40,7 @@ from egorelight_cli.artifacts import ArtifactWriter
 from egorelight_cli.config import Config
 from egorelight_cli.io.calibration import open_calibration
 from egorelight_cli.io.capture import open_capture
+from egorelight_cli.errors import EgorelightError
 from egorelight_cli.pipeline import StageRun
 
 ENVMAP_EXR = "envmap.exr"
@@ -74,16 +75,15 @@ class InverseInputs:
             return None
         missing = [k for k, v in given.items() if v is None]
         if missing:
-            from egorelight_cli.errors import EgorelightError
-
             raise EgorelightError(f"the inverse rendering needs {', '.join(given)} together (missing "
                                   f"{', '.join(missing)}); without all of them envmap writes the LDR-panorama row")
         return cls(Path(meshes), Path(uvmaps), Path(model), Path(sync_meshes), Path(sync_uvmaps), character)
 
     def open(self, capture, sequence, sync_sequence):
-        """(wild data, studio data, model, input artifacts) (:class:`~egorelight_cli.stages.envmap_inverse.EgoAvatarData`)."""
+        """(wild data, studio data, model, input artifacts, source files: the lone npz and character files
+        read) (:class:`~egorelight_cli.stages.envmap_inverse.EgoAvatarData`)."""
         from egorelight_cli.artifacts import open_artifact
-        from egorelight_cli.stages.character_commands import load_character
+        from egorelight_cli.stages.character_commands import character_sources, load_character
         from egorelight_cli.stages.envmap_inverse import EgoAvatarData
         from egorelight_cli.stages.geolift_commands import load_character_meshes
         from egorelight_cli.stages.relight_commands import load_relight_model
@@ -91,6 +91,7 @@ class InverseInputs:
         character, character_artifact = load_character(self.character)
         model, net, model_artifact = load_relight_model(self.model)
         data, artifacts = [], [character_artifact, model_artifact]
+        sources = character_sources(self.character, character_artifact)
         for seq, meshes_path, uvmaps_path in ((sequence, self.meshes, self.uvmaps),
                                               (sync_sequence, self.sync_meshes, self.sync_uvmaps)):
             meshes, meshes_artifact = load_character_meshes(meshes_path, character)
@@ -98,7 +99,8 @@ class InverseInputs:
             data.append(EgoAvatarData(capture, seq, meshes, uvmaps, character, int(net["uv_resolution"]),
                                       int(net["attention_level"]), int(net["rays"])))
             artifacts += [meshes_artifact, uvmaps]
-        return data[0], data[1], model, [a for a in artifacts if a is not None]
+            sources += [] if meshes_artifact else [meshes_path]
+        return data[0], data[1], model, [a for a in artifacts if a is not None], sources
 
 
 @dataclass(frozen=True)
@@ -113,19 +115,19 @@ class EnvmapCommands:
         capture, capture_artifact = open_capture(capture_path, [seq] + ([sync_name] if inverse is not None else []))
         calibration, calibration_artifact = open_calibration(calibration_path)
         sequence = capture.sequence(seq)
-        inputs = [capture_artifact, calibration_artifact]
-        options = {"sequence": sequence.name}
+        inputs, sources = [capture_artifact, calibration_artifact], []
+        options = {}  # --seq enters the key from the declaration; the sync sequence is derived
         loaded = None
         if inverse is not None:
             from egorelight_cli.stages.envmap_inverse import InverseSettings
 
             inverse_settings = InverseSettings.from_config(self.run.config())
             sync_sequence = capture.sequence(sync_name)
-            wild, studio, model, artifacts = inverse.open(capture, sequence, sync_sequence)
+            wild, studio, model, artifacts, sources = inverse.open(capture, sequence, sync_sequence)
             inputs += artifacts
             options["sync_sequence"] = sync_sequence.name
             loaded = (wild, studio, model, inverse_settings)
-        if self.run.up_to_date(out, "envmap", inputs, options=options):
+        if self.run.up_to_date(out, "envmap", inputs, sources, options):
             return Path(out)
         from egorelight_cli.stages import envmap as em
 
@@ -139,22 +141,18 @@ class EnvmapCommands:
             for data in (wild, studio):
                 for role in inverse_settings.roles:
                     if role not in data.sequence.ego_roles or role not in calibration.ego_cameras:
-                        from egorelight_cli.errors import EgorelightError
-
-                        raise EgorelightError(f"inverse.roles: {data.sequence.name} or the calibration has no camera "
+                                    raise EgorelightError(f"inverse.roles: {data.sequence.name} or the calibration has no camera "
                                               f"{role!r} (sequence has {', '.join(data.sequence.ego_roles) or 'none'})")
             ei.usable_frames(wild, calibration, inverse_settings.roles, 1)
             ei.usable_frames(studio, calibration, inverse_settings.roles, 1, inverse_settings.sync_patterns)
 
         def write(writer: ArtifactWriter, cfg: Config) -> None:
-            from egorelight_cli.errors import EgorelightError
-
             if writer.single_file:
                 raise EgorelightError("an envmap artifact is a directory (it holds EXRs and PNGs): give --out a "
                                       "directory", out)
             _write_envmap(writer, cfg, capture, calibration, sequence, settings, loaded)
 
-        return self.run.produce(out, "envmap", write, inputs=inputs, options=options)
+        return self.run.produce(out, "envmap", write, inputs=inputs, source_files=sources, options=options)
 
 
 def _write_envmap(writer: ArtifactWriter, cfg: Config, capture, calibration, sequence, settings, loaded) -> None:
@@ -315,3 +313,14 @@ def preview(result, truth: np.ndarray | None, width: int) -> np.ndarray:
     if truth is not None:
         rows.append(row(truth, "truth (same frame)"))
     return np.concatenate(rows, axis=0)
+
+
+def envmap_command(run: StageRun, capture: Path, calibration: Path, meshes: Path | None, uvmaps: Path | None,
+                   model: Path | None, sync_meshes: Path | None, sync_uvmaps: Path | None, character: str,
+                   sequence: str, out: Path) -> Path:
+    """``egorelight envmap`` (declared in :mod:`egorelight_cli.declarations`)."""
+    inverse = InverseInputs.from_options(meshes, uvmaps, model, sync_meshes, sync_uvmaps, character)
+    if inverse is None and character != "default":
+        raise EgorelightError("--character is read only by the inverse rendering (with --meshes, --uvmaps, --model, "
+                              "--sync-meshes and --sync-uvmaps)")
+    return EnvmapCommands(run).predict(capture, calibration, sequence, out, inverse)

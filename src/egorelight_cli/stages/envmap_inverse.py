@@ -141,14 +141,8 @@ class InverseSettings:
                        float(c.flow.tolerance), float(c.flow.max), float(c.flow.min_consistent), int(c.mask_erode_px), int(c.sync.frames),
                        tuple(c.sync.patterns), rows, int(c.free_map_height))
         of.flow_method(settings.flow, settings.raft_weights)  # an unknown method fails here
-        if not settings.roles or settings.frames < 1 or settings.steps < 1 or settings.views_per_step < 1:
-            raise EgorelightError("inverse.roles must be non-empty and inverse.frames, steps, views_per_step >= 1")
-        if settings.lr <= 0 or (reg_max is not None and reg_max <= 0) or settings.sync_frames < 1 \
-                or settings.free_map_height < 1:
-            raise EgorelightError("inverse.lr and inverse.reg_max must be positive, inverse.sync.frames and "
-                                  "inverse.free_map_height >= 1")
-        unknown = [r for r in rows if r not in ROWS]
-        if unknown or "fitted" not in rows:
+        # value ranges: the checks of stages/envmap.yaml
+        if "fitted" not in rows:
             raise EgorelightError(f"inverse.rows must hold 'fitted' and only {', '.join(ROWS)} (got {', '.join(rows)})")
         return settings
 

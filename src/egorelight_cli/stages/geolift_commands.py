@@ -196,3 +196,14 @@ class GeoliftCommands:
 def map_path(frame_id: int) -> str:
     """Relative path of a frame's UV maps in a uvmaps artifact."""
     return f"{MAPS_DIR}/{frame_file(frame_id, '.exr')}"
+
+
+# ------------------------------------------------------------- handlers (egorelight_cli.declarations)
+def train_command(run: StageRun, capture: Path, meshes: tuple[Path, ...], character: str,
+                  sequences: tuple[str, ...], out: Path) -> Path:
+    return GeoliftCommands(run).train(capture, list(meshes), character, out, list(sequences) or None)
+
+
+def geolift_command(run: StageRun, meshes: Path, model: Path, character: str, capture: Path | None, sequence: str,
+                    out: Path, frame_range: FrameRange) -> Path:
+    return GeoliftCommands(run).predict(meshes, model, character, capture, sequence, out, frame_range)

@@ -83,13 +83,7 @@ def _bvh_input(path: Path, character: Character, cfg: Config) -> IKInput:
     from egorelight_cli.io.bvh import bvh_keypoints, read_bvh
 
     bvh = cfg["bvh"]
-    stride = int(bvh["stride"])
-    if stride < 1:
-        raise EgorelightError(f"ik bvh.stride must be at least 1, got {stride}")
-    if not float(bvh["scale"]) >= 0:
-        raise EgorelightError(f"ik bvh.scale must be 0 (fit to the character) or positive, got {bvh['scale']}")
-    if not float(bvh["unit_scale"]) > 0:
-        raise EgorelightError(f"ik bvh.unit_scale must be positive, got {bvh['unit_scale']}")
+    stride = int(bvh["stride"])  # bvh.* values are checked by stages/ik.yaml's checks
     clip = read_bvh(path)
     keypoints, mapping = bvh_keypoints(clip, unit_scale=float(bvh["unit_scale"]), up_axis=str(bvh["up_axis"]),
                                        keypoint_names=character.keypoint_names)
@@ -290,3 +284,10 @@ def _write_preview(writer: ArtifactWriter, character: Character, result: IKResul
     write_image(writer.path(PREVIEW_PNG), image)
 
 
+# ------------------------------------------------------------- handlers (egorelight_cli.declarations)
+def train_command(run: StageRun, motions: tuple[Path, ...], character: str, out: Path) -> Path:
+    return IKCommands(run).train(motions, character, out)
+
+
+def ik_command(run: StageRun, input: Path, character: str, model: Path | None, gt: Path | None, out: Path) -> Path:
+    return IKCommands(run).ik(input, character, model, gt, out)

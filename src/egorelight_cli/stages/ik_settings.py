@@ -1,34 +1,17 @@
 """Settings of :mod:`egorelight_cli.stages.ik`: one field per ``stages/ik.yaml`` key, defaults
-taken from that file (the one place they live), every value validated on construction."""
+taken from that file (the one place they live), every value checked on construction against the
+file's ``checks`` (the same rules ``--set`` meets)."""
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, fields
+from functools import partial
 
-from egorelight_cli.config import flatten, load_stage_file
+from egorelight_cli.config import check_settings, setting, settings_from_config
 from egorelight_cli.errors import EgorelightError
-from egorelight_cli.stages.ik_robust import ROBUST_LOSSES
 
-SOLVERS = ("lm", "lbfgs")
-_YAML_DEFAULTS = flatten(load_stage_file("ik")["defaults"])
-
-
-def _key(name: str, default=None):
-    """A settings field read from config key ``name`` (nested keys dotted); its default is the
-    one in ``stages/ik.yaml`` (the one place defaults live) unless given (``seed``)."""
-    value = _YAML_DEFAULTS[name] if default is None else default
-    return field(default=tuple(value) if isinstance(value, list) else value, metadata={"key": name})
-
-
-# settings field -> smallest allowed value (inclusive); the error names the config key
-_AT_LEAST = {"lm_iterations": 1, "lm_chunk_frames": 1, "lm_frame_iterations": 0, "lm_coarse_step": 1,
-             "lm_polish_iterations": 0, "lm_tolerance": 0.0, "lm_sweep_tolerance": 0.0, "lbfgs_iterations": 1,
-             "lbfgs_history": 1, "hand_components": 1, "hand_samples": 2, "min_confidence": 0.0,
-             "outlier_residual_factor": 0.0, "outlier_min_residual_m": 0.0,
-             **{w: 0.0 for w in ("w_data", "w_temporal", "w_hand_temporal", "w_reg", "w_dof_limit")}}
-_POSITIVE = ("hand_max_flexion_deg", "fps", "length_unit_m", "huber_delta_m", "outlier_distance_m", "min_span_m", "max_span_m")
+_key = partial(setting, "ik")
 
 
 @dataclass(frozen=True)
@@ -71,16 +54,7 @@ class IKSettings:
     seed: int = _key("seed", 0)
 
     def __post_init__(self) -> None:
-        if self.solver not in SOLVERS:
-            raise EgorelightError(f"unknown ik solver {self.solver!r}; expected one of {', '.join(SOLVERS)}")
-        if self.robust_loss not in ROBUST_LOSSES:
-            raise EgorelightError(f"ik robust.loss must be one of {', '.join(ROBUST_LOSSES)}, got {self.robust_loss!r}")
-        for name, minimum in _AT_LEAST.items():
-            if not getattr(self, name) >= minimum:
-                raise EgorelightError(f"ik {self.key(name)} must be at least {minimum}, got {getattr(self, name)}")
-        for name in _POSITIVE:
-            if not 0 < getattr(self, name) < math.inf:
-                raise EgorelightError(f"ik {self.key(name)} must be a positive number, got {getattr(self, name)}")
+        check_settings(self)
         if not self.min_span_m < self.max_span_m:
             raise EgorelightError(f"ik robust.min_span_m ({self.min_span_m}) must be below robust.max_span_m "
                                   f"({self.max_span_m})")
@@ -93,9 +67,4 @@ class IKSettings:
     @classmethod
     def from_config(cls, cfg: Mapping) -> "IKSettings":
         """From a resolved ``ik`` stage config (see ``stages/ik.yaml``)."""
-        flat = flatten(cfg)
-        values = {}
-        for f in fields(cls):
-            value = flat.get(f.metadata["key"], f.default)
-            values[f.name] = tuple(value) if isinstance(f.default, tuple) else type(f.default)(value)
-        return cls(**values)
+        return settings_from_config(cls, cfg)

@@ -326,7 +326,7 @@ class RelightCommands:
 
     def _load(self, capture_path: Path, meshes_path: Path, uvmaps_path: Path, character_spec: str, seq: str,
               net: dict, lighting: LightingOverride | None = None):
-        from egorelight_cli.stages.character_commands import load_character
+        from egorelight_cli.stages.character_commands import character_sources, load_character
 
         character, character_artifact = load_character(character_spec)
         capture, capture_artifact = open_capture(capture_path)
@@ -340,21 +340,18 @@ class RelightCommands:
             what = "frame" if lighting is not None else "HDR-lit frame"
             raise EgorelightError(f"no {what} of sequence {seq!r} has both a mesh and UV maps", uvmaps_path)
         inputs = [a for a in (capture_artifact, character_artifact, meshes_artifact, uvmaps) if a is not None]
-        return data, frames, inputs
+        # the files read that are not artifacts (a lone meshes npz, a character file) enter the key as sources
+        sources = character_sources(character_spec, character_artifact) + ([] if meshes_artifact else [meshes_path])
+        return data, frames, inputs, sources
 
     def train(self, capture_path: Path, meshes_path: Path, uvmaps_path: Path, character_spec: str, out: Path) -> Path:
         cfg = self.run.config()
         net = {k: cfg.net[k] for k in ("uv_resolution", "attention_level", "rays")}
-        data, frames, inputs = self._load(capture_path, meshes_path, uvmaps_path, character_spec,
+        data, frames, inputs, sources = self._load(capture_path, meshes_path, uvmaps_path, character_spec,
                                           str(cfg.train.sequence), net)
         if len(frames) < 2:
             raise EgorelightError(f"{len(frames)} HDR-lit frame(s): training and validation need at least 2",
                                   uvmaps_path)
-        if any(float(cfg.train.weights[k]) < 0 for k in rl.LOSS_WEIGHTS):
-            raise EgorelightError("train.weights must be non-negative")
-        if str(cfg.train.loss_space) not in rl.LOSS_SPACES:
-            raise EgorelightError(f"train.loss_space must be one of {', '.join(rl.LOSS_SPACES)}, "
-                                  f"got {cfg.train.loss_space!r}")
         held = max(1, int(round(float(cfg.train.validation_fraction) * len(frames))))
         cameras = training_cameras(data.capture, data.sequence)
         train_views = [(int(f), c) for f in frames[:-held] for c in cameras]
@@ -375,8 +372,6 @@ class RelightCommands:
             steps = int(t.steps)
 
             weights = {name: float(t.weights[name]) for name in rl.LOSS_WEIGHTS}
-            if int(t.views_per_step) < 1:
-                raise EgorelightError(f"train.views_per_step must be at least 1, not {t.views_per_step}")
 
             def view_loss(f: int, camera_name: str, scale: float) -> dict[str, torch.Tensor]:
                 rays, valid = data.view_rays(f, camera_name)
@@ -415,7 +410,7 @@ class RelightCommands:
                                              f"{w['l1']:g} L1 + {w['ssim']:g} (1 - SSIM) + {w['reg']:g} L_reg + "
                                              f"{w['diffuse']:g} L1(diffuse), in {t.loss_space} space"})
 
-        result = self.run.produce(out, "model", write, inputs=inputs)
+        result = self.run.produce(out, "model", write, inputs=inputs, source_files=sources)
         checkpoint.unlink(missing_ok=True)
         return result
 
@@ -423,7 +418,8 @@ class RelightCommands:
                 character_spec: str, seq: str, selection: CameraSelection, out: Path,
                 lighting: LightingOverride | None = None, frame_range: FrameRange = FrameRange()) -> Path:
         model, net, model_artifact = load_relight_model(model_path)
-        data, frames, inputs = self._load(capture_path, meshes_path, uvmaps_path, character_spec, seq, net, lighting)
+        data, frames, inputs, sources = self._load(capture_path, meshes_path, uvmaps_path, character_spec, seq, net,
+                                                   lighting)
         cameras, virtual = selection.resolve(data.capture, data.sequence)
         data.add_virtual_cameras(virtual)
         start, stop = frame_range.bounds(len(frames))  # a shard renders the views of its frames
@@ -452,8 +448,20 @@ class RelightCommands:
                                  "preview": ("captured | " if lighting is None else "") + "relit | Lambert | baked"})
 
         light = None if lighting is None else {k: v for k, v in lighting.entry.items() if k != "description"}
-        sources = [lighting.source] if lighting is not None and lighting.source is not None else []
+        sources += [lighting.source] if lighting is not None and lighting.source is not None else []
         sources += [Path(selection.camera_json)] if selection.camera_json is not None else []
         return self.run.produce(out, "renders", write, inputs=inputs + [model_artifact], source_files=sources,
-                                options={"sequence": seq, "cameras": selection.key(), "lighting": light,
-                                         **frame_range.key()})
+                                options={"cameras": selection.key(), "lighting": light})
+
+
+# ------------------------------------------------------------- handlers (egorelight_cli.declarations)
+def train_command(run: StageRun, capture: Path, meshes: Path, uvmaps: Path, character: str, out: Path) -> Path:
+    return RelightCommands(run).train(capture, meshes, uvmaps, character, out)
+
+
+def relight_command(run: StageRun, capture: Path, meshes: Path, uvmaps: Path, model: Path, character: str,
+                    camera_json: Path | None, envmap: Path | None, sequence: str, cameras: str, flat: bool,
+                    olat: int | None, yaw: float, out: Path, frame_range: FrameRange) -> Path:
+    lighting = LightingOverride.parse(flat, olat, envmap, yaw)
+    return RelightCommands(run).predict(capture, meshes, uvmaps, model, character, sequence,
+                                        CameraSelection(cameras, camera_json), out, lighting, frame_range)

@@ -75,3 +75,8 @@ class SynthCommand:
             sources.append(Path(character))
         return self.run.produce(out, "capture", lambda w, cfg: synthesize(w, cfg, subject, envmaps, loaded_motion),
                                 inputs=inputs, source_files=sources)
+
+
+def synth_command(run: StageRun, character: str, envmaps: tuple[Path, ...], motion: Path | None, out: Path) -> Path:
+    """``egorelight synth`` (declared in :mod:`egorelight_cli.declarations`)."""
+    return SynthCommand(run)(out, character, envmaps, motion)

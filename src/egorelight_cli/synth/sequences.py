@@ -214,9 +214,7 @@ def plan_sequence(name: str, cfg, character: Character | None, seed: int, train_
                 segments = segments + [Segment("casual", casual)]
     tracker_theta = None
     if name == "wild":  # the headset tracker samples the same motion k times per frame
-        k = int(cfg.wild.tracker.samples_per_frame)
-        if k < 1:
-            raise EgorelightError(f"wild.tracker.samples_per_frame must be >= 1, got {k}")
+        k = int(cfg.wild.tracker.samples_per_frame)  # >= 1 (stages/synth.yaml's checks)
         if motion_theta is None:
             tracker_theta = compose_motion(character, segments, k * fps, k * n, seed=motion_seed)
         else:  # a motion file has frames only: interpolate between them

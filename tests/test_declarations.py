@@ -1,0 +1,157 @@
+"""Stage declarations (declarations.py, stage_spec.py): the CLI, the cache key, the manifest's
+inputs and the README table derive from them."""
+
+from __future__ import annotations
+
+import inspect
+import json
+from pathlib import Path
+from types import SimpleNamespace
+
+import click
+import pytest
+
+from egorelight_cli.declarations import COMMANDS, command
+from egorelight_cli.pipeline import StageRun
+from egorelight_cli.stage_spec import Command, Input, Option, Output, markdown_table, replace_table
+
+ROOT = Path(__file__).resolve().parents[1]
+UNDECLARED = {("inspect",), ("report",), ("merge",)}  # tools over artifacts, not stages
+
+
+def _click_commands(group: click.Group, prefix: tuple[str, ...] = ()) -> dict[tuple[str, ...], click.Command]:
+    found = {}
+    for name, cmd in group.commands.items():
+        if isinstance(cmd, click.Group):
+            found.update(_click_commands(cmd, prefix + (name,)))
+        else:
+            found[prefix + (name,)] = cmd
+    return found
+
+
+def _defaults(declared: Command) -> dict:
+    values = {p.name: (getattr(p, "default", None) if not getattr(p, "multiple", False) else ()) for p in declared.params()}
+    if declared.per_frame:
+        values.update(frames=None, shard=None)
+    return values
+
+
+def test_every_stage_command_is_built_from_its_declaration():
+    from egorelight_cli.cli import cli
+
+    built = _click_commands(cli)
+    assert set(built) - UNDECLARED == {c.path for c in COMMANDS}
+    for declared in COMMANDS:
+        names = [p.name for p in built[declared.path].params]
+        own = [p.name for p in declared.params()] + (["frames", "shard"] if declared.per_frame else [])
+        assert names[:len(own)] == own, declared.name  # declared order, then the global options
+        assert "device" in names and "preset" in names
+
+
+def test_handlers_take_exactly_the_declared_values():
+    for declared in COMMANDS:
+        handler = declared.handler_function()
+        inspect.signature(handler).bind(SimpleNamespace(), **declared.handler_values(_defaults(declared)))
+
+
+def _alternative(option: Option, stage: str):
+    """A value of ``option`` other than its default (for a config-key option: other than the config's)."""
+    if option.type is bool:
+        return not option.default
+    if isinstance(option.type, tuple):
+        current = option.default
+        if option.config_key is not None:
+            from egorelight_cli.config import flatten, resolve_config
+
+            current = flatten(resolve_config(stage, "tiny").to_dict())[option.config_key]
+        return next(v for v in option.type if v != current)
+    if option.multiple:
+        return ("elsewhere",)
+    if option.type in (int, float):
+        return (option.default or 0) + 1
+    return f"{option.default or ''}x"
+
+
+@pytest.mark.parametrize("declared", [c for c in COMMANDS if c.options or c.per_frame], ids=lambda c: c.name)
+def test_every_declared_option_changes_the_cache_key(declared):
+    """An option cannot change an output without entering its key: each keyed option by itself,
+    and each config-key option through the config."""
+    base = _defaults(declared)
+
+    def key(values):
+        run = StageRun(declared.stage, preset="tiny", sets=tuple(declared.config_sets(values)), command=declared,
+                       values=values)
+        return run.cache_key()[0]
+
+    reference = key(base)
+    for option in declared.options:
+        changed = {**base, option.name: _alternative(option, declared.stage)}
+        assert (key(changed) != reference) == option.keyed or option.config_key is not None, option.flag
+        if option.config_key is not None:
+            assert key(changed) != reference, option.flag
+    if declared.per_frame:
+        assert key({**base, "frames": "0:2"}) != reference and key({**base, "shard": "0/2"}) != reference
+
+
+def test_config_key_options_are_set_in_the_config():
+    ik = command("ik")
+    run = StageRun("ik", sets=tuple(ik.config_sets({"solver": "lbfgs"})), command=ik, values={"solver": "lbfgs"})
+    assert run.config().solver == "lbfgs"
+    train = command("train", "egopose")
+    assert train.config_sets({"no_jitter": True}) == ["train.colour_jitter=false"]
+    assert train.config_sets({"no_jitter": False}) == []
+
+
+def test_an_unkeyed_option_must_say_why():
+    with pytest.raises(ValueError, match="say why"):
+        Option("--fast", "fast", "help", keyed=False)
+    unkeyed = [o for c in COMMANDS for o in c.options if not o.keyed]
+    assert unkeyed and all(o.why_not_keyed for o in unkeyed)
+
+
+def _artifact(path: Path, kind: str):
+    return SimpleNamespace(path=path, kind=kind)
+
+
+def test_input_params_label_and_check_the_inputs(tmp_path):
+    declared = Command(("toy",), "ik", "Toy.", "x:y", Output("motion", "out"),
+                       inputs=(Input("--in", "input", "in", ("keypoints",)), Input("--gt", "gt", "gt", ("motion",)),
+                               Input("--character", "character", "c", ("character",), default="default")))
+    keypoints, gt = tmp_path / "kp", tmp_path / "gt"
+    values = {"input": keypoints, "gt": gt, "character": "default"}
+    params = declared.input_params(values, [_artifact(keypoints, "keypoints"), _artifact(gt / "inner", "motion"),
+                                            _artifact(tmp_path / "found", "capture")], [])
+    assert params == ["--in", "--gt", None]  # the last was found by the command itself
+    with pytest.raises(RuntimeError, match="--in read a motion artifact"):
+        declared.input_params(values, [_artifact(keypoints, "motion"), _artifact(gt, "motion")], [])
+    with pytest.raises(RuntimeError, match="--gt .* did not enter the cache key"):
+        declared.input_params(values, [_artifact(keypoints, "keypoints")], [])
+    assert declared.input_params(values, [_artifact(keypoints, "keypoints")], [gt / "keypoints.npz"]) == ["--in"]
+
+
+def test_manifest_inputs_name_their_param_and_options_are_recorded(tmp_path, tiny_capture, run):
+    """Through the real CLI: each input artifact is labelled with its declared param, --solver lands in
+    the config, --seq in config.options, and a run with another --seq is not "up to date"."""
+    def manifest(*args):
+        result = run("--preset", "tiny", *args)
+        assert result.returncode == 0, result.stderr
+        return json.loads((Path(args[-1]) / "manifest.json").read_text())
+
+    character = manifest("character", "default", "--out", tmp_path / "character")
+    assert character["runtime"]["command"] == "character default"
+    truth = tiny_capture / "groundtruth" / "test"
+    motion = manifest("ik", "--in", truth / "keypoints.npz", "--character", tmp_path / "character", "--solver",
+                      "lbfgs", "--set", "lbfgs.iterations=2", "--out", tmp_path / "motion")
+    assert motion["config"]["solver"] == "lbfgs" and motion["runtime"]["command"] == "ik"
+    assert [i.get("param") for i in motion["inputs"]] == ["--character"]
+    model = manifest("train", "ik", tmp_path / "motion", "--character", tmp_path / "character", "--out",
+                     tmp_path / "model")
+    assert sorted(i.get("param") for i in model["inputs"]) == ["--character", "MOTIONS"]
+    assert "options" not in model["config"]  # train ik has no options of its own
+
+
+def test_readme_table_is_generated_from_the_declarations():
+    readme = (ROOT / "README.md").read_text()
+    assert replace_table(readme, markdown_table(COMMANDS)) == readme, "stale README table: run `make readme`"
+    for declared in COMMANDS:
+        assert f"| `{declared.name}`:" in readme
