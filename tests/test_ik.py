@@ -391,7 +391,7 @@ def test_stage_yaml_defaults_match_the_settings_defaults():
     assert IKSettings.from_config(resolve_config("ik", "cpu")) == IKSettings()
     tiny = IKSettings.from_config(resolve_config("ik", "tiny", ("solver=lbfgs", "weights.reg=0.5")))
     assert tiny.solver == "lbfgs" and tiny.w_reg == 0.5 and tiny.lbfgs_iterations < IKSettings().lbfgs_iterations
-    with pytest.raises(EgorelightError, match="unknown ik solver"):
+    with pytest.raises(EgorelightError, match="'solver' must be one of lm, lbfgs"):
         IKSettings.from_config(resolve_config("ik", "cpu", ("solver=newton",)))
 
 

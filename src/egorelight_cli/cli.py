@@ -1,4 +1,6 @@
-"""The ``egorelight`` command line: one thin command per stage, no math here.
+"""The ``egorelight`` command line: no math here. The stage commands are built from their
+declarations (:mod:`egorelight_cli.declarations`, :func:`stage_command`); ``inspect``, ``report``
+and ``merge`` are tools over artifacts and written out below.
 
 Global options (``--device``, ``--threads``, ``--preset``, ``--set``, ``--force``, ``--seed``, ``-v``/``-q``)
 may be given before the command (``egorelight --preset tiny ik ...``) or after it
