@@ -148,6 +148,8 @@ def test_manifest_inputs_name_their_param_and_options_are_recorded(tmp_path, tin
                      tmp_path / "model")
     assert sorted(i.get("param") for i in model["inputs"]) == ["--character", "MOTIONS"]
     assert "options" not in model["config"]  # train ik has no options of its own
+    shown = run("inspect", tmp_path / "model")
+    assert shown.returncode == 0 and "via MOTIONS" in shown.stdout and "via --character" in shown.stdout
 
 
 def test_readme_table_is_generated_from_the_declarations():

@@ -86,6 +86,8 @@ def input_chain(manifest: dict, root: Path, depth: int = 0, seen: set | None = N
     chain = []
     for entry in manifest.get("inputs", []):
         node: dict[str, Any] = {"kind": entry["kind"], "path": entry["path"], "digest": entry["digest"]}
+        if entry.get("param"):
+            node["param"] = entry["param"]  # the declared input of the command it was read through
         target = (root / entry["path"]) if not Path(entry["path"]).is_absolute() else Path(entry["path"])
         try:
             parent = open_artifact(target, verify=False)
@@ -145,7 +147,8 @@ def _fmt_chain(chain: list[dict], indent: int) -> list[str]:
     lines = []
     for node in chain:
         stage = f" ({node['stage']})" if node.get("stage") else ""
-        lines.append(" " * indent + f"<- {node['kind']}{stage} {node['path']} [{node['status']}]")
+        via = f" via {node['param']}" if node.get("param") else ""
+        lines.append(" " * indent + f"<- {node['kind']}{stage}{via} {node['path']} [{node['status']}]")
         lines += _fmt_chain(node.get("inputs", []), indent + 3)
     return lines
 

@@ -215,6 +215,8 @@ class Page:
             if not isinstance(entry, dict):
                 continue
             kind = escape(str(entry.get("kind", "?")).removeprefix("egorelight/"))
+            if entry.get("param"):  # the declared input it was read through
+                kind += f" ({escape(str(entry['param']))})"
             path = (found.root / str(entry.get("path", ""))).resolve()
             target = self.by_root.get(path)
             if target is not None:
