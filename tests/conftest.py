@@ -2,12 +2,18 @@
 
 from __future__ import annotations
 
+import os
+import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
 
 from egorelight_cli.io.character import load_default_character
+
+# this session's persistent digest cache (egorelight_cli.digest_cache), not the user's ~/.cache;
+# the CLI subprocesses inherit it
+os.environ["EGORELIGHT_CACHE_DIR"] = tempfile.mkdtemp(prefix="egorelight-digests-")
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"

@@ -60,6 +60,18 @@ def test_relight_renders_held_out_cameras_and_scores_them(tiny_capture, skinned_
     for key in ("psnr", "ssim", "lambert_psnr", "baked_psnr"):
         assert np.isfinite(manifest["metrics"][key]), key
     assert 0 < manifest["metrics"]["head_excluded_fraction"] < 0.5
+    # the OLAT / group tail of test is rendered and scored apart from its HDR-lit frames
+    from egorelight_cli.io.npz import read_npz
+
+    rows, _ = read_npz(out / "scores.npz", check_finite=False)
+    patterns = {str(p) for p in rows["light"]}
+    assert patterns == {"envmap", "olat", "group"}
+    envmap = rows["light"] == "envmap"
+    assert manifest["metrics"]["psnr"] == pytest.approx(np.nanmean(rows["psnr"][envmap]))
+    for pattern in ("olat", "group"):
+        chosen = rows["light"] == pattern
+        assert manifest["metrics"][f"{pattern}_tail_views"] == chosen.sum()
+        assert manifest["metrics"][f"{pattern}_tail_lambert_psnr"] == pytest.approx(np.nanmean(rows["lambert_psnr"][chosen]))
     from egorelight_cli.io.gaussian_ply import read_gaussian_ply
 
     gaussians, rgb = read_gaussian_ply(out / "gaussians" / exrs[0].name.replace(".exr", ".ply"))

@@ -105,16 +105,25 @@ def sha256_file(path: str | Path, chunk: int = 1 << 20) -> str:
     return "sha256:" + digest.hexdigest()
 
 
-_DIGEST_CACHE: dict[tuple[str, int, int], str] = {}
+_DIGEST_CACHE: dict[tuple, str] = {}
 
 
 def cached_sha256_file(path: str | Path) -> str:
-    """:func:`sha256_file`, remembered for this process by (real path, size, mtime_ns): a file
-    verified once is not hashed again unless it changed on disk."""
+    """:func:`sha256_file`, remembered by (real path, device, inode, size, mtime_ns, ctime_ns): a
+    file verified once is not hashed again unless it changed on disk; for this process, and across
+    runs in the persistent cache of :mod:`egorelight_cli.digest_cache`."""
+    from egorelight_cli.digest_cache import persistent_cache
+
     stat = os.stat(path)
-    key = (os.path.realpath(path), stat.st_size, stat.st_mtime_ns)
+    real = os.path.realpath(path)
+    key = (real, stat.st_dev, stat.st_ino, stat.st_size, stat.st_mtime_ns, stat.st_ctime_ns)
     if key not in _DIGEST_CACHE:
-        _DIGEST_CACHE[key] = sha256_file(path)
+        cache = persistent_cache()
+        digest = cache.get(real, stat)
+        if digest is None:
+            digest = sha256_file(path)
+            cache.put(real, stat, digest)
+        _DIGEST_CACHE[key] = digest
     return _DIGEST_CACHE[key]
 
 

@@ -18,7 +18,7 @@ import re
 from dataclasses import dataclass, field
 from typing import Any
 
-SPLITS = ("test_", "train_", "validation_", "val_")
+SPLITS = ("test_", "train_", "validation_", "val_", "olat_tail_", "group_tail_")
 #: baseline prefix -> label (the order in which they are shown)
 BASELINE_PREFIXES = {
     "no_depth_": "no depth", "skinning_": "skinning only", "mean_pose_": "mean pose", "per_frame_": "network alone",

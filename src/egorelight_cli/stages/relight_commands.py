@@ -43,7 +43,8 @@ from egorelight_cli.render.uv_features import TexelLighting, lighting_feature_ma
 from egorelight_cli.stages import relight as rl
 from egorelight_cli.stages.geolift_commands import load_character_meshes, map_path, training_cameras
 from egorelight_cli.sharding import FrameRange, stack_rows, write_preview
-from egorelight_cli.stages.relight_eval import SCORES_NPZ, RelightScores, display_images, score_view
+from egorelight_cli.stages.relight_eval import (SCORED_PATTERNS, SCORES_NPZ, RelightScores, display_images,
+                                                score_view)
 
 PREVIEW_PNG = "preview.png"
 UVMAP_LAYERS = ("albedo", "shadow", "normal", "diffuse")
@@ -226,13 +227,19 @@ class RelightData:
         return torch.from_numpy(np.ascontiguousarray(image)), torch.from_numpy(mask)
 
 
-def _lit_frames(sequence, meshes, uvmaps: Artifact, any_light: bool = False) -> np.ndarray:
-    """Frames with an ``envmap`` light entry (any entry with ``any_light``), a mesh and a uvmaps file."""
+def _lit_frames(sequence, meshes, uvmaps: Artifact, patterns: tuple[str, ...] | None = ("envmap",)) -> np.ndarray:
+    """Frames whose light entry has one of ``patterns`` (any entry for None), a mesh and a uvmaps file."""
     entries = {int(f): e for f, e in zip(sequence.frame_ids, sequence.lights)}
     frames = [int(f) for f in meshes.frame_ids
-              if (any_light or entries.get(int(f), {}).get("pattern") == "envmap")
+              if (patterns is None or entries.get(int(f), {}).get("pattern") in patterns)
               and (uvmaps.root / map_path(int(f))).is_file()]
     return np.array(frames, np.int64)
+
+
+def light_patterns(sequence, frames) -> np.ndarray:
+    """(N,) str: the light pattern of each of ``frames`` in the sequence's own lighting."""
+    entries = {int(f): str(e.get("pattern", "flat")) for f, e in zip(sequence.frame_ids, sequence.lights)}
+    return np.array([entries.get(int(f), "flat") for f in frames])
 
 
 def baseline_passes(frame: rl.RelightFrame, coverage: torch.Tensor) -> dict[str, torch.Tensor]:
@@ -287,14 +294,14 @@ def evaluate(model: rl.RelightModel, data: RelightData, views: list[tuple[int, s
     return scores, previews
 
 
-def scored_metrics(scores: RelightScores, data: RelightData) -> dict:
+def scored_metrics(scores: RelightScores, data: RelightData, patterns: np.ndarray | None = None) -> dict:
     """The metrics of ``scores`` (none under a lighting override or from a virtual camera: nothing
-    was captured to compare)."""
+    was captured to compare); with the views' light ``patterns``, the tail scored apart."""
     if data.lighting is not None:
         return {"scored": f"no: lighting {data.lighting.entry['description']} was not captured"}
     if data.virtual:
         return {"scored": f"no: the virtual camera {', '.join(sorted(data.virtual))} captured nothing"}
-    return scores.metrics()
+    return scores.metrics(patterns)
 
 
 def load_relight_model(path: Path) -> tuple[rl.RelightModel, dict, Artifact]:
@@ -325,7 +332,7 @@ class RelightCommands:
     run: StageRun
 
     def _load(self, capture_path: Path, meshes_path: Path, uvmaps_path: Path, character_spec: str, seq: str,
-              net: dict, lighting: LightingOverride | None = None):
+              net: dict, lighting: LightingOverride | None = None, patterns: tuple[str, ...] = ("envmap",)):
         from egorelight_cli.stages.character_commands import character_sources, load_character
 
         character, character_artifact = load_character(character_spec)
@@ -335,7 +342,7 @@ class RelightCommands:
         uvmaps = open_artifact(uvmaps_path, kind="uvmaps")
         data = RelightData(capture, sequence, meshes, uvmaps, character, int(net["uv_resolution"]),
                            int(net["attention_level"]), int(net["rays"]), lighting)
-        frames = _lit_frames(sequence, meshes, uvmaps, any_light=lighting is not None)
+        frames = _lit_frames(sequence, meshes, uvmaps, None if lighting is not None else patterns)
         if not len(frames):
             what = "frame" if lighting is not None else "HDR-lit frame"
             raise EgorelightError(f"no {what} of sequence {seq!r} has both a mesh and UV maps", uvmaps_path)
@@ -418,8 +425,9 @@ class RelightCommands:
                 character_spec: str, seq: str, selection: CameraSelection, out: Path,
                 lighting: LightingOverride | None = None, frame_range: FrameRange = FrameRange()) -> Path:
         model, net, model_artifact = load_relight_model(model_path)
+        # the sequence's own lighting: its HDR-lit frames and its OLAT/group tail, scored apart
         data, frames, inputs, sources = self._load(capture_path, meshes_path, uvmaps_path, character_spec, seq, net,
-                                                   lighting)
+                                                   lighting, SCORED_PATTERNS)
         cameras, virtual = selection.resolve(data.capture, data.sequence)
         data.add_virtual_cameras(virtual)
         start, stop = frame_range.bounds(len(frames))  # a shard renders the views of its frames
@@ -433,13 +441,16 @@ class RelightCommands:
             shown = {p - first_view for p in preview_views(len(frames) * len(cameras), int(cfg.preview.frames))
                      if first_view <= p < first_view + len(views)}
             scores, previews = evaluate(model, data, views, writer, export_ply=cfg.export == "ply", preview_at=shown)
+            scored = lighting is None and not virtual
+            patterns = light_patterns(data.sequence, [f for f, _ in views]) if scored else None
             writer.metrics.update({"sequence": seq, "cameras": cameras, "views": len(views),
-                                   **scored_metrics(scores, data)})
+                                   **scored_metrics(scores, data, patterns)})
             rows = {"frame_ids": np.array([f for f, _ in views], np.int64), "camera": np.array([c for _, c in views]),
-                    **(scores.arrays() if lighting is None and not virtual else {})}
+                    **({"light": patterns, **scores.arrays()} if scored else {})}
             writer.save_npz(SCORES_NPZ, rows, rows=sorted(rows), units={"psnr": "dB", "ssim": "x100"},
-                            description="per view (frame, camera): PSNR/SSIM of the render and its baselines "
-                                        "(NaN: an empty scoring region); the metrics are their means")
+                            description="per view (frame, camera, light pattern): PSNR/SSIM of the render and its "
+                                        "baselines (NaN: an empty scoring region); the metrics are their means over "
+                                        "the HDR-lit views, olat_tail_*/group_tail_* over the tail's")
             write_preview(writer, {first_view + i: image for i, image in previews.items()}, frame_range, PREVIEW_PNG)
             if not frame_range.whole:
                 writer.extra["shard"] = frame_range.manifest(len(frames))

@@ -22,6 +22,10 @@ ROWS = {"": "render", "diffuse_only_": "diffuse", "lambert_": "lambert", "baked_
 
 
 SCORES_NPZ = "scores.npz"
+#: light patterns of a sequence's robustness tail (one light at a time, a random group of lights:
+#: synth's ``light_tail``), scored apart from its HDR-lit (``envmap``) frames as ``<pattern>_tail_*``
+TAIL_PATTERNS = ("olat", "group")
+SCORED_PATTERNS = ("envmap",) + TAIL_PATTERNS
 
 
 class RelightScores:
@@ -41,14 +45,29 @@ class RelightScores:
         names = sorted({k for view in self.views for k in view})
         return {k: np.array([view.get(k, np.nan) for view in self.views], np.float64) for k in names}
 
-    def metrics(self) -> dict:
-        return relight_metrics(self.arrays())
+    def metrics(self, patterns: np.ndarray | None = None) -> dict:
+        return relight_metrics(self.arrays(), patterns)
 
 
-def relight_metrics(rows: dict[str, np.ndarray]) -> dict:
+def relight_metrics(rows: dict[str, np.ndarray], patterns: np.ndarray | None = None) -> dict:
     """Each score's mean over the views that have it (``rows``: :meth:`RelightScores.arrays`, or
-    the merged rows of frame shards), and ``null`` LPIPS/FID with the reason."""
-    out = {key: float(np.nanmean(v)) for key, v in rows.items()}
+    the merged rows of frame shards), and ``null`` LPIPS/FID with the reason.
+
+    With the per-view light ``patterns``, the plain metrics are the HDR-lit (``envmap``) views' and
+    each tail pattern present gets its own ``<pattern>_tail_<score>`` means (:data:`TAIL_PATTERNS`)."""
+    def means(select: np.ndarray, prefix: str = "") -> dict:
+        return {prefix + key: float(np.nanmean(v[select])) if np.isfinite(v[select]).any() else float("nan")
+                for key, v in rows.items()}
+
+    if patterns is None:
+        out = means(np.ones(len(next(iter(rows.values()), [])), bool)) if rows else {}
+    else:
+        patterns = np.asarray(patterns).astype(str)
+        out = means(patterns == "envmap")
+        for pattern in TAIL_PATTERNS:
+            if (patterns == pattern).any():
+                out.update(means(patterns == pattern, f"{pattern}_tail_"))
+                out[f"{pattern}_tail_views"] = int((patterns == pattern).sum())
     out.update({"lpips": None, "fid": None, "lpips_fid": "need pretrained AlexNet/Inception weights: not scored"})
     return out
 
@@ -66,10 +85,11 @@ def merged_metrics(root, manifests: list[dict]) -> dict:
     metrics["views"] = int(len(rows["frame_ids"]))
     if "scored" in first:
         return {**metrics, "scored": first["scored"]}
-    return {**metrics, **relight_metrics({k: v for k, v in rows.items() if k not in VIEW_KEYS})}
+    return {**metrics, **relight_metrics({k: v for k, v in rows.items() if k not in VIEW_KEYS}, rows.get("light"))}
 
 
-VIEW_KEYS = ("frame_ids", "camera")
+#: per-view columns of ``scores.npz`` that are not scores: the frame, the camera, its light pattern
+VIEW_KEYS = ("frame_ids", "camera", "light")
 
 
 def tonemapped(render: GaussianRender, names) -> dict[str, torch.Tensor]:
