@@ -157,3 +157,29 @@ def test_readme_table_is_generated_from_the_declarations():
     assert replace_table(readme, markdown_table(COMMANDS)) == readme, "stale README table: run `make readme`"
     for declared in COMMANDS:
         assert f"| `{declared.name}`:" in readme
+
+
+def test_a_cached_no_op_is_decided_from_the_recorded_manifest(tmp_path, tiny_capture, run, monkeypatch):
+    """The early check (StageRun.recorded_up_to_date) skips an up-to-date run without importing its
+    handler, and steps aside (the handler runs) when an option, the config or an input changed."""
+    from egorelight_cli import stage_spec
+
+    truth = tiny_capture / "groundtruth" / "test"
+    character, motion = tmp_path / "character", tmp_path / "motion"
+    assert run("--preset", "tiny", "character", "default", "--out", character).returncode == 0
+    args = ("--preset", "tiny", "ik", "--in", truth / "keypoints.npz", "--character", character, "--out", motion)
+    assert run(*args).returncode == 0
+
+    def handler_must_not_run(self):
+        raise AssertionError(f"{self.name}: the handler ran")
+
+    monkeypatch.setattr(stage_spec.Command, "handler_function", handler_must_not_run)
+    result = run(*args)
+    assert result.returncode == 0 and "up to date" in result.stderr
+    for changed in (("--solver", "lbfgs"), ("--set", "lm.iterations=3"), ("--seed", "5"), ("--force",)):
+        result = run(*args, *changed)
+        assert result.returncode == 1 and "the handler ran" in result.stderr, changed
+    payload = character / "character.npz"
+    payload.write_bytes(payload.read_bytes() + b"\0")  # an input payload modified
+    result = run(*args)
+    assert result.returncode == 1 and "the handler ran" in result.stderr

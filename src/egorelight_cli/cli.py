@@ -210,6 +210,8 @@ def stage_command(declared: Command) -> click.Command:
     @click.pass_context
     def callback(ctx: click.Context, **values) -> None:
         run = _stage_run(ctx, declared, values)
+        if run.recorded_up_to_date(values[declared.output.name]):
+            return  # a cached no-op: the handler (and torch) is never imported
         declared.handler_function()(run, **declared.handler_values(values))
 
     decorators = ([_input_decorator(i) for i in declared.inputs] + [_option_decorator(o) for o in declared.options]

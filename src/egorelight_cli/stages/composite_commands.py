@@ -127,7 +127,7 @@ class CompositeCommands:
         user2 = _background_sequence_frames(calibration, sequence, front, settings.frames if role else 1)
         inputs = [a for a in (capture_artifact, calibration_artifact, envmap_artifact, character_artifact,
                               model_artifact, meshes_artifact, uvmaps) if a is not None]
-        options = {"camera": role or "virtual"}  # the other options enter the key from the declaration
+        options = {"camera_role": role or "virtual"}  # the declared options enter the key from the declaration
         sources = [camera_json] if camera_json is not None else []
         sources += character_sources(avatar.character, character_artifact)
         sources += [] if meshes_artifact else [Path(avatar.meshes)]

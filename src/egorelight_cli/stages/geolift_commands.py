@@ -161,7 +161,7 @@ class GeoliftCommands:
             writer.units.update({"rgb_l1": "linear radiance", "normal_deg": "degrees"})
 
         result = self.run.produce(out, "model", write, inputs=inputs, source_files=sources,
-                                  options={"sequences": sequences})
+                                  options={"training_sequences": sequences})
         checkpoint.unlink(missing_ok=True)
         return result
 
@@ -189,8 +189,7 @@ class GeoliftCommands:
                                       out)
             write_uvmaps(writer, cfg, model, extra, character, meshes, capture, sequence, frame_range)
 
-        return self.run.produce(out, "uvmaps", write, inputs=inputs, source_files=sources,
-                                options={"sequence": seq if capture is not None else None, **frame_range.key()})
+        return self.run.produce(out, "uvmaps", write, inputs=inputs, source_files=sources)
 
 
 def map_path(frame_id: int) -> str:

@@ -462,7 +462,7 @@ class RelightCommands:
         sources += [lighting.source] if lighting is not None and lighting.source is not None else []
         sources += [Path(selection.camera_json)] if selection.camera_json is not None else []
         return self.run.produce(out, "renders", write, inputs=inputs + [model_artifact], source_files=sources,
-                                options={"cameras": selection.key(), "lighting": light})
+                                options={"camera_selection": selection.key(), "lighting": light})
 
 
 # ------------------------------------------------------------- handlers (egorelight_cli.declarations)
