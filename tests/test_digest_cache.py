@@ -81,3 +81,24 @@ def test_an_unusable_cache_folder_falls_back_to_hashing(tmp_path, monkeypatch):
     assert artifacts.cached_sha256_file(payload) == artifacts.sha256_file(payload)
     monkeypatch.setenv("EGORELIGHT_CACHE_DIR", "off")
     assert digest_cache.cache_dir() is None
+
+
+def test_a_manifest_is_schema_validated_once_per_content(tmp_path, monkeypatch):
+    """A manifest whose bytes passed validation is not validated again; one that changes is."""
+    from egorelight_cli.artifacts import ArtifactWriter, open_artifact
+
+    monkeypatch.setenv("EGORELIGHT_CACHE_DIR", str(tmp_path / "cache"))
+    monkeypatch.setattr(digest_cache, "_CACHES", {})
+    with ArtifactWriter(tmp_path / "a", kind="motion", stage="ik") as writer:
+        writer.save_npz("motion.npz", {"theta": __import__("numpy").zeros((2, 3), "float32")})
+    calls = []
+    real = artifacts.validate_manifest
+    monkeypatch.setattr(artifacts, "validate_manifest", lambda m, p=None: calls.append(p) or real(m, p))
+    open_artifact(tmp_path / "a")
+    open_artifact(tmp_path / "a")
+    assert len(calls) == 1
+    manifest = tmp_path / "a" / "manifest.json"
+    broken = manifest.read_text().replace('"outputs"', '"outputz"')
+    manifest.write_text(broken)
+    with pytest.raises(artifacts.EgorelightError, match="manifest does not match"):
+        open_artifact(tmp_path / "a")  # other bytes: validated (and refused) again

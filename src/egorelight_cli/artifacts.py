@@ -109,13 +109,13 @@ _DIGEST_CACHE: dict[tuple, str] = {}
 
 
 def cached_sha256_file(path: str | Path) -> str:
-    """:func:`sha256_file`, remembered by (real path, device, inode, size, mtime_ns, ctime_ns): a
+    """:func:`sha256_file`, remembered by (path, device, inode, size, mtime_ns, ctime_ns): a
     file verified once is not hashed again unless it changed on disk; for this process, and across
     runs in the persistent cache of :mod:`egorelight_cli.digest_cache`."""
     from egorelight_cli.digest_cache import persistent_cache
 
     stat = os.stat(path)
-    real = os.path.realpath(path)
+    real = os.path.abspath(path)  # the stat identity (device, inode) names the file; this is the record's key
     key = (real, stat.st_dev, stat.st_ino, stat.st_size, stat.st_mtime_ns, stat.st_ctime_ns)
     if key not in _DIGEST_CACHE:
         cache = persistent_cache()
@@ -273,11 +273,29 @@ def open_artifact(path: str | Path, kind: str | None = None, verify: bool = True
         raise EgorelightError(
             f"{KIND_PREFIX}{found} version mismatch: artifact is version {manifest.get('version')}, "
             f"this tool ({__version__}) reads version {known[found]}", path)
-    validate_manifest(manifest, manifest_path)
-    artifact = Artifact(manifest_path=manifest_path, manifest=manifest, digest=sha256_bytes(raw), single_file=single_file)
+    digest = sha256_bytes(raw)
+    _validate_once(manifest, manifest_path, digest)
+    artifact = Artifact(manifest_path=manifest_path, manifest=manifest, digest=digest, single_file=single_file)
     if verify:
         artifact.verify()
     return artifact
+
+
+@lru_cache(maxsize=1)
+def _schemas_digest() -> str:
+    return sha256_bytes(json.dumps(_schema_documents(), sort_keys=True).encode())
+
+
+def _validate_once(manifest: dict, manifest_path: Path, digest: str) -> None:
+    """:func:`validate_manifest`, skipped for manifest bytes that passed against the same schemas
+    before (remembered in :mod:`egorelight_cli.digest_cache`)."""
+    from egorelight_cli.digest_cache import persistent_cache
+
+    cache = persistent_cache()
+    if cache.validated(digest, _schemas_digest()):
+        return
+    validate_manifest(manifest, manifest_path)
+    cache.mark_validated(digest, _schemas_digest())
 
 
 def resolve_payload(path: str | Path, kind: str, payload: str, what: str):

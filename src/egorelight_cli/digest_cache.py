@@ -13,6 +13,10 @@ only), so an edited, truncated or replaced payload misses the record and is hash
 whose timestamps are less than :data:`SETTLE_S` old when it is hashed is not recorded: a second
 write within the same timestamp tick could leave its stat unchanged (git's "racy clean" case).
 
+It also remembers which manifests (by the sha256 of their bytes) passed schema validation
+against which schemas (:meth:`DigestCache.validated`): a capture's manifest lists thousands of
+payloads and takes longer to validate than to read.
+
 The cache is an accelerator only: any failure to open, read or write it (a read-only home, a
 locked or corrupt database) falls back to hashing, silently.
 """
@@ -55,6 +59,8 @@ class DigestCache:
             self._db.execute("PRAGMA journal_mode=WAL")
             self._db.execute("CREATE TABLE IF NOT EXISTS digests (path TEXT PRIMARY KEY, identity TEXT NOT NULL, "
                              "digest TEXT NOT NULL)")
+            self._db.execute("CREATE TABLE IF NOT EXISTS validated (manifest TEXT NOT NULL, schemas TEXT NOT NULL, "
+                             "PRIMARY KEY (manifest, schemas))")
         except (OSError, sqlite3.Error):
             self._db = None
 
@@ -83,12 +89,32 @@ class DigestCache:
         return True
 
 
-_CACHES: dict[Path | None, DigestCache] = {}
+    def validated(self, manifest_digest: str, schemas_digest: str) -> bool:
+        """Whether a manifest with these bytes passed validation against these schemas before."""
+        if self._db is None:
+            return False
+        try:
+            return self._db.execute("SELECT 1 FROM validated WHERE manifest = ? AND schemas = ?",
+                                    (manifest_digest, schemas_digest)).fetchone() is not None
+        except sqlite3.Error:
+            return False
+
+    def mark_validated(self, manifest_digest: str, schemas_digest: str) -> None:
+        if self._db is None:
+            return
+        try:
+            self._db.execute("INSERT OR IGNORE INTO validated VALUES (?, ?)", (manifest_digest, schemas_digest))
+        except sqlite3.Error:
+            pass
+
+
+_CACHES: dict[tuple, DigestCache] = {}
 
 
 def persistent_cache() -> DigestCache:
-    """The process's :class:`DigestCache` for the current :func:`cache_dir` (opened once)."""
-    folder = cache_dir()
-    if folder not in _CACHES:
-        _CACHES[folder] = DigestCache(folder)
-    return _CACHES[folder]
+    """The process's :class:`DigestCache` for the current :func:`cache_dir` (opened once per
+    setting of the variables that choose it)."""
+    setting = tuple(os.environ.get(name) for name in ("EGORELIGHT_CACHE_DIR", "XDG_CACHE_HOME", "HOME"))
+    if setting not in _CACHES:
+        _CACHES[setting] = DigestCache(cache_dir())
+    return _CACHES[setting]
