@@ -55,17 +55,17 @@ def test_cached_sha256_file_hashes_once_across_processes(tmp_path, settled, monk
     monkeypatch.setenv("EGORELIGHT_CACHE_DIR", str(tmp_path / "cache"))
     payload = tmp_path / "payload.bin"
     _write(payload, os.urandom(4096))
-    truth = artifacts.sha256_file(payload)
+    truth = digest_cache.sha256_file(payload)
     calls = []
-    monkeypatch.setattr(artifacts, "sha256_file", lambda p: calls.append(p) or truth)
+    monkeypatch.setattr(digest_cache, "sha256_file", lambda p: calls.append(p) or truth)
     for _ in range(2):  # each round as a fresh process: empty in-process caches
-        monkeypatch.setattr(artifacts, "_DIGEST_CACHE", {})
+        monkeypatch.setattr(digest_cache, "_DIGEST_CACHE", {})
         monkeypatch.setattr(digest_cache, "_CACHES", {})
-        assert artifacts.cached_sha256_file(payload) == truth
+        assert digest_cache.cached_sha256_file(payload) == truth
     assert len(calls) == 1
     payload.write_bytes(os.urandom(4096))
-    monkeypatch.setattr(artifacts, "_DIGEST_CACHE", {})
-    artifacts.cached_sha256_file(payload)
+    monkeypatch.setattr(digest_cache, "_DIGEST_CACHE", {})
+    digest_cache.cached_sha256_file(payload)
     assert len(calls) == 2  # changed on disk: hashed again
 
 
@@ -74,11 +74,11 @@ def test_an_unusable_cache_folder_falls_back_to_hashing(tmp_path, monkeypatch):
     blocker.write_text("")
     monkeypatch.setenv("EGORELIGHT_CACHE_DIR", str(blocker))
     monkeypatch.setattr(digest_cache, "_CACHES", {})
-    monkeypatch.setattr(artifacts, "_DIGEST_CACHE", {})
+    monkeypatch.setattr(digest_cache, "_DIGEST_CACHE", {})
     assert not digest_cache.persistent_cache().enabled
     payload = tmp_path / "payload.bin"
     payload.write_bytes(b"data")
-    assert artifacts.cached_sha256_file(payload) == artifacts.sha256_file(payload)
+    assert digest_cache.cached_sha256_file(payload) == digest_cache.sha256_file(payload)
     monkeypatch.setenv("EGORELIGHT_CACHE_DIR", "off")
     assert digest_cache.cache_dir() is None
 

@@ -37,6 +37,7 @@ import numpy as np
 from referencing import Registry, Resource
 
 from egorelight_cli import __version__
+from egorelight_cli.digest_cache import cached_sha256_file, sha256_file  # noqa: F401 (re-exported)
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.io.npz import write_npz
 from egorelight_cli.resources import schemas_dir
@@ -97,36 +98,6 @@ def validate_manifest(manifest: dict, path: str | Path | None = None) -> None:
 
 
 # ----------------------------------------------------------------------------------- hashing
-def sha256_file(path: str | Path, chunk: int = 1 << 20) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        while block := handle.read(chunk):
-            digest.update(block)
-    return "sha256:" + digest.hexdigest()
-
-
-_DIGEST_CACHE: dict[tuple, str] = {}
-
-
-def cached_sha256_file(path: str | Path) -> str:
-    """:func:`sha256_file`, remembered by (path, device, inode, size, mtime_ns, ctime_ns): a
-    file verified once is not hashed again unless it changed on disk; for this process, and across
-    runs in the persistent cache of :mod:`egorelight_cli.digest_cache`."""
-    from egorelight_cli.digest_cache import persistent_cache
-
-    stat = os.stat(path)
-    real = os.path.abspath(path)  # the stat identity (device, inode) names the file; this is the record's key
-    key = (real, stat.st_dev, stat.st_ino, stat.st_size, stat.st_mtime_ns, stat.st_ctime_ns)
-    if key not in _DIGEST_CACHE:
-        cache = persistent_cache()
-        digest = cache.get(real, stat)
-        if digest is None:
-            digest = sha256_file(path)
-            cache.put(real, stat, digest)
-        _DIGEST_CACHE[key] = digest
-    return _DIGEST_CACHE[key]
-
-
 def sha256_bytes(data: bytes) -> str:
     return "sha256:" + hashlib.sha256(data).hexdigest()
 

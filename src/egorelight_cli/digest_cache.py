@@ -1,4 +1,5 @@
-"""Payload digests remembered across runs, so that a cached no-op does not re-hash a gigabyte capture.
+"""Payload digests (sha256), remembered within a process and across runs, so that a cached no-op
+does not re-hash a gigabyte capture.
 
 Every stage verifies the sha256 of the payloads it reads against their manifests
 (:meth:`~egorelight_cli.artifacts.Artifact.verify`). Within a process a digest is remembered by the
@@ -23,6 +24,7 @@ locked or corrupt database) falls back to hashing, silently.
 
 from __future__ import annotations
 
+import hashlib
 import os
 import sqlite3
 import time
@@ -118,3 +120,33 @@ def persistent_cache() -> DigestCache:
     if setting not in _CACHES:
         _CACHES[setting] = DigestCache(cache_dir())
     return _CACHES[setting]
+
+
+# ---------------------------------------------------------------------------------- hashing
+def sha256_file(path: str | Path, chunk: int = 1 << 20) -> str:
+    """``"sha256:<hex>"`` of a file's bytes."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        while block := handle.read(chunk):
+            digest.update(block)
+    return "sha256:" + digest.hexdigest()
+
+
+_DIGEST_CACHE: dict[tuple, str] = {}
+
+
+def cached_sha256_file(path: str | Path) -> str:
+    """:func:`sha256_file`, remembered by (path, device, inode, size, mtime_ns, ctime_ns): a
+    file verified once is not hashed again unless it changed on disk; for this process, and across
+    runs in the :func:`persistent_cache`."""
+    stat = os.stat(path)
+    absolute = os.path.abspath(path)  # the stat identity (device, inode) names the file; this is the record's key
+    key = (absolute, stat.st_dev, stat.st_ino, stat.st_size, stat.st_mtime_ns, stat.st_ctime_ns)
+    if key not in _DIGEST_CACHE:
+        cache = persistent_cache()
+        digest = cache.get(absolute, stat)
+        if digest is None:
+            digest = sha256_file(path)
+            cache.put(absolute, stat, digest)
+        _DIGEST_CACHE[key] = digest
+    return _DIGEST_CACHE[key]

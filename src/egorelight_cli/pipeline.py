@@ -67,8 +67,8 @@ class StageRun:
 
     def options(self, explicit: Mapping[str, Any] | None = None) -> dict[str, Any]:
         """The options that enter the cache key and ``config.options``: the declared command's keyed
-        options (:meth:`~egorelight_cli.stage_spec.Command.keyed_options`), then the ones the
-        command derives itself (``explicit``, e.g. a parsed lighting), which win on a shared name."""
+        options (:meth:`~egorelight_cli.stage_spec.Command.keyed_options`) and the ones the command
+        derives itself (``explicit``, e.g. a parsed lighting), under other names (a clash is a bug)."""
         declared = self.command.keyed_options(self.values) if self.command is not None else {}
         clash = set(declared) & set(explicit or {})
         if clash:  # a derived option must not shadow a declared one (the early cache check compares them)
