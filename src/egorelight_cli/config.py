@@ -176,9 +176,8 @@ def _stage_checks(stage: str) -> dict[str, Any]:
 def setting(stage: str, key: str, default: Any = dataclasses.MISSING) -> Any:
     """A dataclass field mirroring config key ``key`` of ``stages/<stage>.yaml``, its default taken
     from that file (a list becomes a tuple, a mapping a fresh dict) unless given (``seed``)."""
-    value = _lookup(_stage_defaults(stage), key, {}, default) if default is not dataclasses.MISSING else \
-        _lookup(_stage_defaults(stage), key, {}, KeyError)
-    if value is KeyError:
+    value = _lookup(_stage_defaults(stage), key, {}, default)
+    if value is dataclasses.MISSING:
         raise KeyError(f"stages/{stage}.yaml has no default for {key!r}")
     metadata = {"stage": stage, "key": key}
     if isinstance(value, Mapping):
@@ -209,6 +208,7 @@ def settings_from_config(cls: type, cfg: Mapping[str, Any]) -> Any:
 
 
 def _lookup(cfg: Mapping[str, Any], key: str, flat: Mapping[str, Any], default: Any) -> Any:
+    """The value of dotted ``key`` (a leaf from ``flat``, or a whole section of ``cfg``), else ``default``."""
     if key in flat:
         return flat[key]
     node: Any = cfg
