@@ -60,6 +60,11 @@ def test_relight_renders_held_out_cameras_and_scores_them(tiny_capture, skinned_
     for key in ("psnr", "ssim", "lambert_psnr", "baked_psnr"):
         assert np.isfinite(manifest["metrics"][key]), key
     assert 0 < manifest["metrics"]["head_excluded_fraction"] < 0.5
+    # each body part of the character's segmentation is scored apart (the shiny garment: pants)
+    for row in ("", "diffuse_only_", "lambert_", "baked_"):
+        assert np.isfinite(manifest["metrics"]["parts"]["pants"][f"{row}psnr"]), row
+    assert "olat_tail_psnr" in manifest["metrics"]["parts"]["pants"]
+    assert not {"hair", "face"} & set(manifest["metrics"]["parts"])
     # the OLAT / group tail of test is rendered and scored apart from its HDR-lit frames
     from egorelight_cli.io.npz import read_npz
 

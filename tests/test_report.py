@@ -192,6 +192,11 @@ def test_metric_pairing_conventions():
     assert baselines_of("full_p2s_cm", flat) == [("skinning only", "skinning_p2s_cm")]
     assert baselines_of("test_mpjpe_all_cm", flat) == [("mean pose", "test_mean_pose_mpjpe_all_cm")]
     assert baselines_of("sgbm_depth_absrel", flat) == [] and baselines_of("frames", flat) == []
+    parts = {"parts.pants.psnr": 19.0, "parts.pants.lambert_psnr": 18.0, "parts.pants.olat_tail_psnr": 15.0,
+             "parts.pants.olat_tail_diffuse_only_psnr": 16.0, "lambert_psnr": 17.0}
+    assert baselines_of("parts.pants.psnr", parts) == [("Lambert", "parts.pants.lambert_psnr")]
+    assert baselines_of("parts.pants.olat_tail_psnr", parts) == [("diffuse only", "parts.pants.olat_tail_diffuse_only_psnr")]
+    assert baselines_of("parts.pants.lambert_psnr", parts) == []
     assert direction("val_psnr") == 1 and direction("normal_deg") == -1 and direction("frames") == 0
     rows = {r.key: r for r in metric_rows("uvmaps", flat)}
     assert "normal_deg_coarse" not in rows and "sgbm_depth_absrel" not in rows

@@ -7,6 +7,8 @@ Pairing conventions (what the stages write):
   ``mpjpe_body_cm`` / ``mean_pose_mpjpe_body_cm``, ``depth_absrel`` / ``sgbm_depth_absrel``,
   ``psnr`` / ``lambert_psnr`` / ``baked_psnr``, ``test_mpjpe_body_cm`` / ``test_mean_pose_mpjpe_body_cm``;
 * a *variant* prefix on our own value: ``full_p2s_*`` / ``no_depth_p2s_*`` / ``skinning_p2s_*``;
+* inside a nested group (``parts.pants.psnr`` / ``parts.pants.lambert_psnr``) the same conventions
+  hold after the group's dotted prefix;
 * a baseline *suffix*: ``normal_deg`` / ``normal_deg_coarse``, ``texture_l1`` / ``texture_l1_mean_texture``,
   ``depth_absrel`` / ``depth_absrel_constant_baseline``.
 """
@@ -138,10 +140,14 @@ def ours_is_better(key: str, ours: Any, other: Any) -> bool | None:
 
 
 def _split(key: str) -> tuple[str, str]:
+    """(split prefix, the rest): a nested group (``parts.pants.``) and a split (``olat_tail_``) both
+    belong to the prefix, so ``parts.pants.lambert_psnr`` pairs with ``parts.pants.psnr``."""
+    group, dot, key = key.rpartition(".")
+    group += dot
     for split in SPLITS:
         if key.startswith(split):
-            return split, key[len(split):]
-    return "", key
+            return group + split, key[len(split):]
+    return group, key
 
 
 def baselines_of(key: str, flat: dict[str, Any]) -> list[tuple[str, str]]:

@@ -43,8 +43,8 @@ from egorelight_cli.render.uv_features import TexelLighting, lighting_feature_ma
 from egorelight_cli.stages import relight as rl
 from egorelight_cli.stages.geolift_commands import load_character_meshes, map_path, training_cameras
 from egorelight_cli.sharding import FrameRange, stack_rows, write_preview
-from egorelight_cli.stages.relight_eval import (SCORED_PATTERNS, SCORES_NPZ, RelightScores, display_images,
-                                                score_view)
+from egorelight_cli.stages.relight_eval import (PARTS_PASS, SCORED_PATTERNS, SCORES_NPZ, RelightScores,
+                                                display_images, part_channels, part_groups, score_view)
 
 PREVIEW_PNG = "preview.png"
 UVMAP_LAYERS = ("albedo", "shadow", "normal", "diffuse")
@@ -142,6 +142,11 @@ class RelightData:
         self.rays = rays
         names = character.segmentation_names
         self.head_vertices = np.isin(character.segmentation, [k for k, v in names.items() if v in ("hair", "face")])
+        #: the parts scored apart and each covered texel's part (N,P), from the character's segmentation
+        groups = part_groups(names)
+        self.parts = tuple(groups)
+        texel_vertex = character.faces[self.raster.face_id[self.raster.coverage], 0]
+        self.part_texels = part_channels(character.segmentation, groups, texel_vertex) if groups else None
         self._frames: dict[int, rl.RelightFrame] = {}
         self._lighting: dict[int, TexelLighting] = {}
         self._rays: dict[tuple[int, str], tuple[torch.Tensor, torch.Tensor]] = {}
@@ -270,12 +275,15 @@ def evaluate(model: rl.RelightModel, data: RelightData, views: list[tuple[int, s
             rays, valid = data.view_rays(f, camera_name)
             head = torch.from_numpy(frame.head.astype(np.float32))[:, None]
             extra = {**baseline_passes(frame, data.coverage), "head": head}
+            scored = data.scored(camera_name)
+            if scored and data.part_texels is not None:
+                extra[PARTS_PASS] = data.part_texels
             render, avatar = rl.render_relit(model, frame, data.coverage, data.cameras[camera_name],
                                              rays, valid, extra_passes=extra)
-            if data.scored(camera_name):
+            if scored:
                 scores.start_view()
                 target, mask = data.target(f, camera_name)
-                tonemapped = score_view(scores, render, target, mask)
+                tonemapped = score_view(scores, render, target, mask, data.parts if PARTS_PASS in extra else ())
             else:
                 tonemapped = display_images(render)
             if writer is not None:

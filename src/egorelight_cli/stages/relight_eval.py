@@ -7,6 +7,12 @@ alpha. PSNR (dB) and SSIM (x100) for the model, its diffuse part alone ("without
 and the baselines: the Lambert relighting of the flat-lit texture ``a chi / (pi rho s_flat)`` and
 the baked flat-lit texture, all rendered with the
 model's Gaussians. LPIPS and FID need pretrained networks that cannot be downloaded: ``null``.
+
+Per body part of the character's segmentation (:func:`part_groups`: e.g. ``pants``, the simulated
+subject's shiny garment, ``upper_clothes``, its matte one) the same rows are scored again in the
+pixels the part covers (its render pass over half of the alpha), as ``metrics["parts"][name][row]``
+(per view ``part.<name>.<row>`` in ``scores.npz``): whether SpecularNet helps shows on the glossy
+materials, not in the whole-body mean.
 """
 
 from __future__ import annotations
@@ -69,6 +75,22 @@ def relight_metrics(rows: dict[str, np.ndarray], patterns: np.ndarray | None = N
                 out.update(means(patterns == pattern, f"{pattern}_tail_"))
                 out[f"{pattern}_tail_views"] = int((patterns == pattern).sum())
     out.update({"lpips": None, "fid": None, "lpips_fid": "need pretrained AlexNet/Inception weights: not scored"})
+    return _nest_parts(out)
+
+
+def _nest_parts(metrics: dict) -> dict:
+    """Move the per-part means (``[<pattern>_tail_]part.<name>.<score>``) under ``metrics["parts"][name]``
+    as ``[<pattern>_tail_]<score>``."""
+    out, parts = {}, {}
+    for key, value in metrics.items():
+        prefix, found, rest = key.partition(PART_KEY)
+        if not found:
+            out[key] = value
+            continue
+        name, _, score = rest.partition(".")
+        parts.setdefault(name, {})[prefix + score] = value
+    if parts:
+        out["parts"] = dict(sorted(parts.items()))
     return out
 
 
@@ -106,14 +128,58 @@ def display_images(render: GaussianRender) -> dict:
     return _uint8(tonemapped(render, ("render", "lambert", "baked")))
 
 
-def score_view(scores: RelightScores, render: GaussianRender, target: torch.Tensor, mask: torch.Tensor) -> dict:
-    """Score one render against its captured image; returns the tone-mapped uint8 images by name."""
-    head = render.passes["head"][..., 0] > 0.5 * render.alpha.clamp_min(1e-6)
+#: part names never scored apart (the head region is excluded from every score)
+HEAD_PARTS = ("hair", "face")
+#: per-view score names of a part start with ``part.<name>.``
+PART_KEY = "part."
+#: render pass holding the per-part coverage (one channel per :func:`part_groups` entry)
+PARTS_PASS = "parts"
+
+
+def part_groups(segmentation_names: dict[int, str]) -> dict[str, list[int]]:
+    """The character's segmentation labels grouped into the parts scored apart: the left and
+    right of a limb form one part (``left_leg`` + ``right_leg`` -> ``leg``); the head parts
+    (:data:`HEAD_PARTS`) are left out. Ordered by name."""
+    groups: dict[str, list[int]] = {}
+    for label, name in sorted(segmentation_names.items()):
+        if name in HEAD_PARTS:
+            continue
+        groups.setdefault(name.removeprefix("left_").removeprefix("right_"), []).append(int(label))
+    return dict(sorted(groups.items()))
+
+
+def part_channels(segmentation: np.ndarray, groups: dict[str, list[int]], vertex_of_texel: np.ndarray) -> torch.Tensor:
+    """(N,P) float32 one-hot part of each texel (``vertex_of_texel`` (N,): a vertex of its face)
+    over the parts ``groups`` (:func:`part_groups`), for the :data:`PARTS_PASS` render pass."""
+    labels = segmentation[vertex_of_texel]
+    return torch.from_numpy(np.stack([np.isin(labels, ids) for ids in groups.values()], axis=1).astype(np.float32))
+
+
+def _covered(render: GaussianRender, name: str) -> torch.Tensor:
+    """(H,W,C) bool: pixels where the pass ``name`` holds over half of the render's alpha."""
+    return render.passes[name] > 0.5 * render.alpha.clamp_min(1e-6)[..., None]
+
+
+def _add_rows(scores: RelightScores, display: dict, region: torch.Tensor, prefix: str = "") -> None:
+    for row, name in ROWS.items():
+        scores.add(f"{prefix}{row}psnr", float(psnr(display[name], display["target"], region)))
+        scores.add(f"{prefix}{row}ssim", 100.0 * float(ssim(display[name], display["target"], region)))
+
+
+def score_view(scores: RelightScores, render: GaussianRender, target: torch.Tensor, mask: torch.Tensor,
+               parts: tuple[str, ...] = ()) -> dict:
+    """Score one render against its captured image, in the subject ``mask`` without the head,
+    and per part of ``parts`` (the channels of the render's :data:`PARTS_PASS`, when given; a
+    part covering fewer than 16 scored pixels gets no row). Returns the tone-mapped uint8 images by name."""
+    head = _covered(render, "head")[..., 0]
     region = mask & ~head
     display = {"target": tonemap_for_metrics(target), **tonemapped(render, ROWS.values())}
     if bool(region.any()):
-        for prefix, name in ROWS.items():
-            scores.add(f"{prefix}psnr", float(psnr(display[name], display["target"], region)))
-            scores.add(f"{prefix}ssim", 100.0 * float(ssim(display[name], display["target"], region)))
+        _add_rows(scores, display, region)
+        covered = _covered(render, PARTS_PASS) if parts else None
+        for k, part in enumerate(parts):
+            part_region = region & covered[..., k]
+            if int(part_region.sum()) >= 16:
+                _add_rows(scores, display, part_region, f"{PART_KEY}{part}.")
     scores.add("head_excluded_fraction", float(head[mask].float().mean()) if bool(mask.any()) else 0.0)
     return _uint8(display)
