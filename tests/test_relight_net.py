@@ -106,3 +106,39 @@ def test_a_tiny_relighting_fit_lowers_its_loss_and_renders():
         losses.append(float(loss.detach()))
     assert losses[-1] < 0.5 * losses[0]
     assert float(image.detach().max()) > 0.1
+
+
+def test_ray_irradiance_sums_the_valid_rays_and_upsamples():
+    from egorelight_cli.stages.relight import ray_irradiance
+
+    rays = torch.zeros(2, 2, 3, 6)
+    rays[..., 3:6] = torch.arange(1.0, 4.0).view(1, 1, 3, 1)  # rays carrying 1, 2 and 3
+    valid = torch.ones(2, 2, 3, dtype=torch.bool)
+    valid[0, 0, 2] = False  # the third ray of one texel is not valid
+    low = ray_irradiance(rays, valid, (2, 2))
+    assert low.shape == (3, 2, 2)
+    np.testing.assert_allclose(low[:, 0, 0].numpy(), 3.0)
+    np.testing.assert_allclose(low[:, 1, 1].numpy(), 6.0)
+    high = ray_irradiance(rays, torch.ones_like(valid), (8, 8))
+    np.testing.assert_allclose(high.numpy(), 6.0, rtol=1e-6)  # a constant map upsamples to itself
+
+
+def test_irradiance_scaled_specular_is_dark_without_light():
+    from egorelight_cli.stages.relight import RelightFrame, RelightModel, relit_avatar
+
+    n = 8
+    frame = RelightFrame(torch.rand(10, n, n), _grid_points(n).reshape(-1, 3).float(), torch.full((n * n,), 0.01),
+                         np.ones((1, 3)), np.zeros((3, 3)), np.zeros(n * n, bool), torch.rand(n * n, 3))
+    coverage = torch.ones(n, n, dtype=torch.bool)
+    rays, valid = torch.rand(4, 4, 3, 6), torch.ones(4, 4, 3, dtype=torch.bool)
+    dark = rays.clone()
+    dark[..., 3:6] = 0.0  # the rays' directions, but no light along them
+    for scale, dark_specular in (("none", True), ("irradiance", False)):
+        torch.manual_seed(0)
+        model = RelightModel(base_channels=4, levels=2, attention_level=1, rays=3, heads=1, specular_scale=scale)
+        with torch.no_grad():
+            assert float(relit_avatar(model, frame, coverage, rays, valid).specular.min()) > 0
+            unlit = relit_avatar(model, frame, coverage, dark, valid).specular
+        assert (float(unlit.max()) > 0) == dark_specular, scale  # the paper's head glows in the dark
+    with pytest.raises(Exception, match="specular_scale"):
+        RelightModel(4, 2, 1, 3, 1, specular_scale="bogus")

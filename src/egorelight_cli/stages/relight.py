@@ -8,7 +8,14 @@ under the frame's lighting) and the tracked mesh's texel points feed
   relighting of GeoLift's flat-lit texture, ``c_diff = a chi / (pi rho s_flat) softplus(x) / ln 2``,
   so an untrained network renders the Lambert baseline (the paper predicts ``c_diff`` directly);
 * SpecularNet (``a, rho, n`` + the top-r ray encodings ``psi`` of each texel for the rendering
-  camera, at the attention level's resolution) -> the specular colour.
+  camera, at the attention level's resolution) -> the specular colour (``net.specular_scale:
+  none``, the paper) or a specular reflectance times the irradiance of those r rays
+  (``irradiance``: a highlight scales with the light that makes it; the paper's colour, never
+  trained on one bright light, glows as brightly under one OLAT light as under a whole map).
+
+``net.diffuse_gain: false`` keeps ``c_diff`` at the Lambert relighting (DiffuseNet then shapes the
+Gaussians only): with a few hundred steps on a dozen training lights the learned gain did not
+carry over to unseen lighting (cpu demo, ``stages/relight.yaml``).
 
 The Gaussians are rendered (``render/gaussians.py``) with ``c_diff + c_spec`` and, as a pass,
 ``c_diff`` alone. Loss: ``w_l1 L1 + w_ssim (1 - SSIM) + w_reg L_reg + w_diffuse L1(diffuse pass)``,
@@ -50,14 +57,31 @@ LN2 = float(np.log(2.0))  # softplus(0): the diffuse gain of an untrained Diffus
 LOSS_WEIGHTS = {"l1": 1.0, "ssim": 10.0, "reg": 1.0, "diffuse": 1.0}  # paper (ID-MRF x80: no VGG weights)
 
 
+#: what SpecularNet's output is: ``none`` the specular colour itself (the paper); ``irradiance`` a
+#: reflectance that multiplies the irradiance of the texel's top-r rays (:func:`ray_irradiance`), so
+#: the specular colour scales with the light that makes it (one light or a dim map gives a dim highlight)
+SPECULAR_SCALES = ("none", "irradiance")
+
+
+def ray_irradiance(rays: torch.Tensor, valid: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
+    """(3,H,W) irradiance of the selected rays of each texel: the sum over the r rays of their
+    contribution channels (``psi[..., 3:6]``; (h,w,r,6) at the attention level, ``valid`` (h,w,r)),
+    bilinearly upsampled to the UV resolution ``size``."""
+    irradiance = (rays[..., 3:6] * valid[..., None].to(rays.dtype)).sum(dim=-2).permute(2, 0, 1)
+    return F.interpolate(irradiance[None], size=size, mode="bilinear", align_corners=False)[0]
+
+
 class RelightModel(nn.Module):
     """DiffuseNet + SpecularNet of one avatar."""
 
     def __init__(self, base_channels: int, levels: int, attention_level: int, rays: int, heads: int = 4,
-                 attention: bool = True):
+                 attention: bool = True, specular_scale: str = "none", diffuse_gain: bool = True):
         super().__init__()
+        if specular_scale not in SPECULAR_SCALES:
+            raise EgorelightError(f"net.specular_scale must be one of {', '.join(SPECULAR_SCALES)}, got {specular_scale!r}")
         self.config = {"base_channels": base_channels, "levels": levels, "attention_level": attention_level,
-                       "rays": rays, "heads": heads, "attention": attention}
+                       "rays": rays, "heads": heads, "attention": attention, "specular_scale": specular_scale,
+                       "diffuse_gain": diffuse_gain}
         self.diffuse = DiffuseNet(base_channels, levels)
         self.specular = SpecularNet(base_channels, levels, attention_level, heads, attention)
 
@@ -174,9 +198,13 @@ def relit_avatar(model: RelightModel, frame: RelightFrame, coverage: torch.Tenso
     raw_map = model.diffuse(maps[None])[0]
     ray_scale = torch.tensor([1.0, 1.0, 1.0, light_scale, light_scale, light_scale])
     spec_map = model.specular(maps[None, :7], (rays * ray_scale)[None], valid[None])[0]
+    if model.config.get("specular_scale", "none") == "irradiance":
+        spec_map = spec_map * ray_irradiance(rays * ray_scale, valid, tuple(spec_map.shape[-2:]))
     raw = raw_map.permute(1, 2, 0)[coverage]
     c_spec = spec_map.permute(1, 2, 0)[coverage]
-    c_diff = frame.lambert * light_scale * diffuse_colour(raw) / LN2  # starts at the Lambert relighting
+    c_diff = frame.lambert * light_scale  # the Lambert relighting, times DiffuseNet's gain (1 untrained)
+    if model.config.get("diffuse_gain", True):
+        c_diff = c_diff * diffuse_colour(raw) / LN2
     gaussians, offsets = texel_gaussians(frame.points, frame.footprint, raw, c_diff + c_spec, settings)
     return RelitAvatar(gaussians, c_diff, c_spec, gaussian_regulariser(offsets, gaussians.scales, frame.footprint))
 
@@ -205,6 +233,10 @@ def relight_loss(render: GaussianRender, target: torch.Tensor, mask: torch.Tenso
     the images after the metric tone mapping (:func:`~egorelight_cli.render.image_metrics.tonemap_for_metrics`),
     the space the renders are scored in, where a dark garment's error counts as much as a lit one's.
     ``weights``: of the terms ``l1, ssim, reg, diffuse`` (default :data:`LOSS_WEIGHTS`, the paper's).
+    The L1 terms are means over the subject's pixels (``mask``), not over the whole image: a camera
+    that frames the subject small would otherwise dilute them against SSIM (measured on the cpu
+    demo: the whole-image mean was ~1/7 of the subject's, and training traded PSNR for SSIM).
+    SSIM is computed in the subject's bounding box (8 pixels of margin).
     """
     weights = LOSS_WEIGHTS if weights is None else weights
     if space not in LOSS_SPACES:
@@ -216,7 +248,8 @@ def relight_loss(render: GaussianRender, target: torch.Tensor, mask: torch.Tenso
     image, diffuse, target = image * weight, diffuse * weight, target * weight
     rows, cols = torch.nonzero(mask, as_tuple=True)
     box = (slice(max(int(rows.min()) - 8, 0), int(rows.max()) + 9), slice(max(int(cols.min()) - 8, 0), int(cols.max()) + 9))
-    terms = {"l1": (image - target).abs().mean(), "ssim": 1.0 - ssim(image[box], target[box]),
-             "reg": regulariser, "diffuse": (diffuse - target).abs().mean()}
+    subject_values = 3.0 * weight.sum()  # L1 is a mean over the subject's pixels, whatever the framing
+    terms = {"l1": (image - target).abs().sum() / subject_values, "ssim": 1.0 - ssim(image[box], target[box]),
+             "reg": regulariser, "diffuse": (diffuse - target).abs().sum() / subject_values}
     terms["loss"] = sum(float(weights[k]) * v for k, v in terms.items())
     return terms

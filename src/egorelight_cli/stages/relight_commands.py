@@ -323,7 +323,8 @@ def load_relight_model(path: Path) -> tuple[rl.RelightModel, dict, Artifact]:
     net = {"uv_resolution": payload.extra["uv_resolution"], "attention_level": arch["attention_level"],
            "rays": arch["rays"]}
     model = rl.RelightModel(int(arch["base_channels"]), int(arch["levels"]), int(arch["attention_level"]),
-                            int(arch["rays"]), int(arch["heads"]), bool(arch["attention"]))
+                            int(arch["rays"]), int(arch["heads"]), bool(arch["attention"]),
+                            str(arch.get("specular_scale", "none")), bool(arch.get("diffuse_gain", True)))
     try:
         model.load_state_dict(payload.state_dict)
     except RuntimeError as exc:
@@ -382,7 +383,8 @@ class RelightCommands:
             net, t = cfg.net, cfg.train
             torch.manual_seed(int(cfg.seed))
             model = rl.RelightModel(int(net.base_channels), int(net.levels), int(net.attention_level), int(net.rays),
-                                    int(net.heads), bool(net.attention))
+                                    int(net.heads), bool(net.attention), str(net.specular_scale),
+                                    bool(net.diffuse_gain))
             optimizer = torch.optim.Adam(model.parameters(), lr=float(t.lr))
             steps = int(t.steps)
 
