@@ -88,6 +88,14 @@ class RelightModel(nn.Module):
     def architecture(self) -> dict:
         return dict(self.config)
 
+    @classmethod
+    def from_architecture(cls, arch) -> "RelightModel":
+        """The model an :meth:`architecture` dict (or the config's ``net`` section) describes; a
+        model saved before ``specular_scale`` / ``diffuse_gain`` existed gets their old behaviour."""
+        return cls(int(arch["base_channels"]), int(arch["levels"]), int(arch["attention_level"]), int(arch["rays"]),
+                   int(arch["heads"]), bool(arch["attention"]), str(arch.get("specular_scale", "none")),
+                   bool(arch.get("diffuse_gain", True)))
+
 
 @dataclass
 class RelightFrame:
@@ -198,12 +206,12 @@ def relit_avatar(model: RelightModel, frame: RelightFrame, coverage: torch.Tenso
     raw_map = model.diffuse(maps[None])[0]
     ray_scale = torch.tensor([1.0, 1.0, 1.0, light_scale, light_scale, light_scale])
     spec_map = model.specular(maps[None, :7], (rays * ray_scale)[None], valid[None])[0]
-    if model.config.get("specular_scale", "none") == "irradiance":
+    if model.config["specular_scale"] == "irradiance":
         spec_map = spec_map * ray_irradiance(rays * ray_scale, valid, tuple(spec_map.shape[-2:]))
     raw = raw_map.permute(1, 2, 0)[coverage]
     c_spec = spec_map.permute(1, 2, 0)[coverage]
     c_diff = frame.lambert * light_scale  # the Lambert relighting, times DiffuseNet's gain (1 untrained)
-    if model.config.get("diffuse_gain", True):
+    if model.config["diffuse_gain"]:
         c_diff = c_diff * diffuse_colour(raw) / LN2
     gaussians, offsets = texel_gaussians(frame.points, frame.footprint, raw, c_diff + c_spec, settings)
     return RelitAvatar(gaussians, c_diff, c_spec, gaussian_regulariser(offsets, gaussians.scales, frame.footprint))

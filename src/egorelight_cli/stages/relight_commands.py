@@ -43,7 +43,7 @@ from egorelight_cli.render.uv_features import TexelLighting, lighting_feature_ma
 from egorelight_cli.stages import relight as rl
 from egorelight_cli.stages.geolift_commands import load_character_meshes, map_path, training_cameras
 from egorelight_cli.sharding import FrameRange, stack_rows, write_preview
-from egorelight_cli.stages.relight_eval import (PARTS_PASS, SCORED_PATTERNS, SCORES_NPZ, RelightScores,
+from egorelight_cli.stages.relight_eval import (HEAD_PARTS, PARTS_PASS, SCORED_PATTERNS, SCORES_NPZ, RelightScores,
                                                 display_images, part_channels, part_groups, score_view)
 
 PREVIEW_PNG = "preview.png"
@@ -141,7 +141,7 @@ class RelightData:
         self.envmaps = CaptureEnvmaps(capture.root)
         self.rays = rays
         names = character.segmentation_names
-        self.head_vertices = np.isin(character.segmentation, [k for k, v in names.items() if v in ("hair", "face")])
+        self.head_vertices = np.isin(character.segmentation, [k for k, v in names.items() if v in HEAD_PARTS])
         #: the parts scored apart and each covered texel's part (N,P), from the character's segmentation
         groups = part_groups(names)
         self.parts = tuple(groups)
@@ -322,9 +322,7 @@ def load_relight_model(path: Path) -> tuple[rl.RelightModel, dict, Artifact]:
     arch = payload.architecture
     net = {"uv_resolution": payload.extra["uv_resolution"], "attention_level": arch["attention_level"],
            "rays": arch["rays"]}
-    model = rl.RelightModel(int(arch["base_channels"]), int(arch["levels"]), int(arch["attention_level"]),
-                            int(arch["rays"]), int(arch["heads"]), bool(arch["attention"]),
-                            str(arch.get("specular_scale", "none")), bool(arch.get("diffuse_gain", True)))
+    model = rl.RelightModel.from_architecture(arch)
     try:
         model.load_state_dict(payload.state_dict)
     except RuntimeError as exc:
@@ -382,9 +380,7 @@ class RelightCommands:
                 raise EgorelightError("a relight model is a directory artifact: give --out a directory name", out)
             net, t = cfg.net, cfg.train
             torch.manual_seed(int(cfg.seed))
-            model = rl.RelightModel(int(net.base_channels), int(net.levels), int(net.attention_level), int(net.rays),
-                                    int(net.heads), bool(net.attention), str(net.specular_scale),
-                                    bool(net.diffuse_gain))
+            model = rl.RelightModel.from_architecture(net)
             optimizer = torch.optim.Adam(model.parameters(), lr=float(t.lr))
             steps = int(t.steps)
 

@@ -128,7 +128,7 @@ def display_images(render: GaussianRender) -> dict:
     return _uint8(tonemapped(render, ("render", "lambert", "baked")))
 
 
-#: part names never scored apart (the head region is excluded from every score)
+#: segmentation names that make up the head: excluded from every score, never a part of their own
 HEAD_PARTS = ("hair", "face")
 #: per-view score names of a part start with ``part.<name>.``
 PART_KEY = "part."
