@@ -1,7 +1,7 @@
 """Benchmark: the egodepth stage per frame (two down-facing fisheye views).
 
 * ``depth_net_<preset>_ms_per_frame``: the depth network's forward pass on both views of one
-  frame (one batch of 2), with the ``cpu`` preset network on 256x256 views (the demo capture)
+  frame (one batch of 2; with the stereo input it also needs the SGBM below), with the ``cpu`` preset network on 256x256 views (the demo capture)
   and the ``paper`` preset network on 512x512 views; paper: 87.7 ms per frame on a GPU for its
   Depth-Anything-V2 fine-tune;
 * ``sgbm_ms_per_frame``: SGBM on the rectified pair (rectification maps are built once per sequence) (both reference views) + mapping back, 256x256;
@@ -61,13 +61,14 @@ def _body():
 
 def _network_ms(preset: str, size: int, device: torch.device) -> float:
     cfg = resolve_config("egodepth", preset)
-    model = DepthNet(int(cfg.net.base_channels), int(cfg.net.levels)).to(device).eval()
+    model = DepthNet.from_config(cfg.net).to(device).eval()
     image = torch.rand(2, 3, size, size, device=device)
     rays = torch.rand(2, 3, size, size, device=device)
+    stereo = torch.rand(2, 1, size, size, device=device) if model.stereo_input else None
 
     def forward():
         with torch.no_grad():
-            model(image, rays)
+            model(image, rays, None, stereo)
         if device.type == "cuda":
             torch.cuda.synchronize()
 

@@ -110,19 +110,21 @@ def egodepth_train_step() -> tuple[Callable[[], None], int, str]:
     torch.manual_seed(0)
     cfg = resolve_config("egodepth", "cpu")
     settings = TrainSettings.from_config(cfg)
-    model = DepthNet(int(cfg.net.base_channels), int(cfg.net.levels)).train()
+    model = DepthNet.from_config(cfg.net).train()
     optimizer = torch.optim.Adam(model.parameters(), lr=settings.lr)
     n, crop = settings.batch, settings.crop
     batch = {"image": torch.rand(n, 3, crop, crop), "rays": torch.randn(n, 3, crop, crop),
              "log_range": torch.rand(n, 1, crop, crop) - 1.0, "supervised": torch.rand(n, 1, crop, crop) < 0.3,
              "inside": torch.ones(n, 1, crop, crop, dtype=torch.bool)}
+    if model.stereo_input:
+        batch["stereo"] = torch.rand(n, 1, crop, crop) * (torch.rand(n, 1, crop, crop) < 0.5)
     steps = 2
 
     def train_steps() -> None:
         for _ in range(steps):
             losses = depth_losses(model, batch)
             optimizer.zero_grad(set_to_none=True)
-            (losses["depth_l1_log"] + losses["mask_bce"]).backward()
+            (losses["depth"] + losses["mask_bce"]).backward()
             optimizer.step()
 
     return train_steps, steps, f"cpu preset, batch {n}, {crop} px crops"

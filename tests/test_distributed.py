@@ -60,8 +60,11 @@ def test_train_egodepth_under_torchrun_matches_one_process(tiny_capture, oracle_
     assert sorted(p.name for p in tmp_path.iterdir()) == ["one", "two"]  # rank 1 left nothing behind
     curves = [json.loads((tmp_path / name / "curve.json").read_text()) for name in ("one", "two")]
     # the same global batches; the masked depth loss is normalised per rank, so not bit-identical
+    # (the total also holds the error scale's likelihood, whose log b term makes it near zero:
+    # compared are its positive parts)
     for a, b in zip(*curves):
-        assert b["loss"] == pytest.approx(a["loss"], rel=0.03)
+        assert b["depth_l1_log"] == pytest.approx(a["depth_l1_log"], rel=0.03)
+        assert b["mask_bce"] == pytest.approx(a["mask_bce"], rel=0.03)
 
 
 def test_a_stage_that_does_not_train_refuses_torchrun(tiny_capture, tmp_path):

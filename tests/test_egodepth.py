@@ -177,3 +177,75 @@ def test_egodepth_frame_shards_merge_into_the_single_run(tiny_capture, oracle_ca
             assert run_cli(*args, "--shard", f"{i}/{count}", "--out", str(part)) == 0
         merged = assert_shards_merge_into(net_cloud, parts, tmp_path / f"merged{count}")
         assert merged["metrics"]["sgbm_depth_absrel"] > 0  # both methods' rows merged
+
+
+class _FixedDepthNet(torch.nn.Module):
+    """A stand-in network with fixed outputs (log range, body logit, log scale)."""
+
+    stereo_input = False
+
+    def __init__(self, log_range, logit, log_scale):
+        super().__init__()
+        self.outputs = (log_range, logit, log_scale)
+
+    def forward(self, image, rays, prior=None, stereo=None):
+        return self.outputs
+
+
+def test_laplace_depth_loss_is_minimised_at_the_mean_absolute_error():
+    """With the uncertainty, the depth term adds the Laplace NLL |e|/b + log b over the supervised
+    pixels: for one b shared by all pixels it is smallest at b = mean |e| (analytic), and it
+    sends no gradient into the range (the error is detached)."""
+    generator = torch.Generator().manual_seed(0)
+    target = torch.rand(1, 1, 8, 8, generator=generator) - 1.0
+    error = torch.randn(1, 1, 8, 8, generator=generator) * 0.2
+    supervised = torch.rand(1, 1, 8, 8, generator=generator) < 0.6
+    batch = {"image": torch.zeros(1, 3, 8, 8), "rays": torch.zeros(1, 3, 8, 8), "log_range": target,
+             "supervised": supervised, "inside": torch.ones(1, 1, 8, 8, dtype=torch.bool)}
+    mean_abs = float(error.abs()[supervised].mean())
+    scales = np.linspace(0.3, 3.0, 271) * mean_abs
+    nll = [float(ed.depth_losses(_FixedDepthNet(target + error, torch.zeros(1, 1, 8, 8),
+                                                torch.full((1, 1, 8, 8), float(np.log(b)))), batch)["depth"])
+           for b in scales]
+    assert scales[int(np.argmin(nll))] == pytest.approx(mean_abs, rel=0.01)
+    log_range = (target + error).requires_grad_()
+    log_scale = torch.full((1, 1, 8, 8), -3.0, requires_grad=True)
+    losses = ed.depth_losses(_FixedDepthNet(log_range, torch.zeros(1, 1, 8, 8), log_scale), batch)
+    grad_nll = torch.autograd.grad(losses["scale_nll"], log_range, retain_graph=True, allow_unused=True)[0]
+    (grad_depth,) = torch.autograd.grad(losses["depth"], log_range)
+    assert grad_nll is None
+    np.testing.assert_allclose(grad_depth.numpy(), (torch.sign(error) * supervised / supervised.sum()).numpy(), atol=1e-7)
+    plain = ed.depth_losses(_FixedDepthNet(target + error, torch.zeros(1, 1, 8, 8), None), batch)
+    assert float(plain["depth"]) == pytest.approx(mean_abs, rel=1e-5) == float(plain["depth_l1_log"])
+
+
+def test_prediction_drops_pixels_the_network_expects_to_be_wrong(tiny_capture, oracle_calibration):
+    capture = Capture(tiny_capture)
+    sequence = capture.sequence("test")
+    frame = int(sequence.content_frame_ids[0])
+    views = [ed.load_view(capture, oracle_calibration, sequence, r, frame) for r in ROLES]
+    camera = views[0].camera
+    ray_maps = {r: ed.camera_ray_map(capture.ego_camera(r)) for r in ROLES}
+    shape = (2, 1, camera.height, camera.width)
+    log_scale = torch.full(shape, float(np.log(0.05)))
+    log_scale[..., : camera.width // 2] = float(np.log(0.2))  # the left half is uncertain
+    model = _FixedDepthNet(torch.full(shape, float(np.log(0.4))), torch.full(shape, 5.0), log_scale)
+    settings = ed.PredictSettings(0.5, 0.07, 3.0, 0.0, 0.1)
+    ranges = ed.predict_ranges_net(model, views, ray_maps, {}, settings, torch.device("cpu"))
+    for role in ROLES:
+        inside = ray_maps[role][1]
+        assert not ranges[role][:, : camera.width // 2].any()
+        np.testing.assert_allclose(ranges[role][:, camera.width // 2:][inside[:, camera.width // 2:]], 0.4, rtol=1e-6)
+    off = ed.predict_ranges_net(model, views, ray_maps, {}, ed.PredictSettings(0.5, 0.07, 3.0, 0.0, 0.0),
+                                torch.device("cpu"))
+    assert (off[ROLES[0]] > 0).sum() == ray_maps[ROLES[0]][1].sum()
+
+
+def test_network_beats_sgbm_on_held_out_frames(net_cloud):
+    """On test (frames the network never saw), against SGBM on the same frames: lower AbsRel and
+    point-to-surface distance over what each covers, and lower AbsRel on the pixels both cover."""
+    m = json.loads((net_cloud / "manifest.json").read_text())["metrics"]
+    assert m["depth_absrel"] < 0.8 * m["sgbm_depth_absrel"]
+    assert m["depth_absrel_common"] < m["sgbm_depth_absrel_common"]
+    assert m["point_to_surface_cm"] < 0.8 * m["sgbm_point_to_surface_cm"]
+    assert m["depth_coverage"] > 0.5 * m["sgbm_depth_coverage"]

@@ -105,3 +105,28 @@ def test_model_payload_round_trip_and_errors(tmp_path):
     (tmp_path / "model.pt").write_bytes(b"garbage")
     with pytest.raises(EgorelightError, match="cannot load model"):
         read_model(tmp_path)
+
+
+def test_depth_net_corrects_the_stereo_range_where_stereo_has_one():
+    """With the stereo input and a zero correction, the network returns the stereo log range
+    where stereo has a range and its training median elsewhere; without a stereo map it refuses."""
+    from egorelight_cli.errors import EgorelightError
+    from egorelight_cli.nn.depth_net import DepthNet
+
+    torch.manual_seed(0)
+    net = DepthNet(base_channels=4, levels=2, log_range_mean=-1.2, stereo_input=True).eval()
+    torch.nn.init.zeros_(net.unet.head.weight)
+    torch.nn.init.zeros_(net.unet.head.bias)
+    image, rays = torch.rand(2, 3, 16, 20), torch.randn(2, 3, 16, 20)
+    stereo = torch.rand(2, 1, 16, 20) * 0.8 + 0.1
+    stereo[:, :, :, :7] = 0  # no stereo range in the left columns
+    log_range, _, log_scale = net(image, rays, None, stereo)
+    assert log_scale is None
+    has = stereo > 0
+    torch.testing.assert_close(log_range[has], torch.log(stereo[has]))
+    torch.testing.assert_close(log_range[~has], torch.full_like(log_range[~has], -1.2))
+    with pytest.raises(EgorelightError, match="stereo"):
+        net(image, rays)
+    # the architecture round trip keeps the stereo input; models written before it are monocular
+    assert DepthNet.from_architecture(net.architecture()).stereo_input
+    assert not DepthNet.from_architecture({"base_channels": 4, "levels": 2, "prior_channels": 0}).stereo_input

@@ -12,8 +12,12 @@ normals.
   reconstruction from inside) are not supervised either.
 * **Network** (:class:`~egorelight_cli.nn.depth_net.DepthNet`): shared by both views; trained
   with L1 on log range over the supervised pixels plus a body-mask BCE, with the paper's colour
-  jitter and random crops; optional Depth-Anything-V2 prior (``--backbone``).
-* **Inference**: range where the body probability exceeds ``predict.mask_threshold``, outside the
+  jitter and random crops; optional Depth-Anything-V2 prior (``--backbone``). With
+  ``net.stereo_input`` (the default) it also takes SGBM's range on the rigid down-facing pair
+  (:class:`SGBMDepth`, computed on the un-jittered pair) and corrects it: stereo is metric and
+  lighting-independent where the body is textured, the image fills in where it has nothing.
+* **Inference**: range where the body probability exceeds ``predict.mask_threshold`` and (with
+  ``net.uncertainty``) the predicted error scale is below ``predict.max_uncertainty``, outside the
   self-occlusion mask, beyond ``predict.min_range_m``, minus depth-discontinuity pixels;
   ``--method sgbm`` uses OpenCV SGBM on the rectified fisheye pair instead
   (:mod:`egorelight_cli.geometry.fisheye_stereo`).
@@ -26,7 +30,9 @@ normals.
   in the body mesh, hides the body), coverage of that mask, and the point-to-surface
   distance (cm) of the fused points to the true mesh's outer surface (``point_to_surface_cm``:
   the points->true direction only, a partial view has no completeness; any topology of the
-  truth); for the network and, with ``eval.compare_sgbm``, for SGBM on the same frames.
+  truth); for the network and, with ``eval.compare_sgbm``, for SGBM on the same frames, with
+  each one's AbsRel also on the pixels both cover (``depth_absrel_common``, the like-for-like
+  comparison, since each method's own AbsRel is over the pixels it chose to keep).
 """
 
 from __future__ import annotations
@@ -113,7 +119,8 @@ def usable_frames(calibration: Calibration, sequence: SequenceInfo, roles: Seque
 @dataclass(frozen=True, eq=False)
 class TrainingView:
     """One supervised view: image (H,W,3) uint8, range (H,W) float32 metres, supervised (H,W)
-    bool, near (H,W) bool (reconstruction hit closer than ``near_m``: the headset)."""
+    bool, near (H,W) bool (reconstruction hit closer than ``near_m``: the headset), and the stereo
+    range (H,W) float32 metres (0 = none) when the network takes one."""
 
     role: str
     sequence: str
@@ -122,11 +129,15 @@ class TrainingView:
     range: np.ndarray
     supervised: np.ndarray
     near: np.ndarray
+    stereo: np.ndarray | None = None
 
 
 def supervision(capture: Capture, calibration: Calibration, sequences: Sequence[SequenceInfo], roles: Sequence[str],
-                near_m: float, max_frames: int = 0) -> list[TrainingView]:
-    """Render every available reconstruction into the ego views (see the module docstring)."""
+                near_m: float, max_frames: int = 0, stereo=None) -> list[TrainingView]:
+    """Render every available reconstruction into the ego views (see the module docstring).
+
+    ``stereo``: None, or a callable (the frame's :class:`EgoView` list -> range map by role, e.g.
+    :class:`SGBMDepth` bound to its settings) whose output each view keeps as its stereo input."""
     from egorelight_cli.io.meshes import read_mesh
 
     views: list[TrainingView] = []
@@ -138,12 +149,14 @@ def supervision(capture: Capture, calibration: Calibration, sequences: Sequence[
         for f in frames:
             vertices, faces = read_mesh(sequence.recon_path(f))
             caster = RayCaster(vertices, faces)
-            for role in roles:
-                view = load_view(capture, calibration, sequence, role, f)
+            frame_views = [load_view(capture, calibration, sequence, role, f) for role in roles]
+            stereo_ranges = stereo(frame_views) if stereo is not None else {}
+            for view in frame_views:
                 rendered = render_depth(view.camera, caster)
                 near = rendered.hit & (rendered.range < near_m)
                 supervised = rendered.hit & rendered.front_facing & ~near
-                views.append(TrainingView(role, sequence.name, f, view.image, rendered.range, supervised, near))
+                views.append(TrainingView(view.role, sequence.name, f, view.image, rendered.range, supervised, near,
+                                          stereo_ranges.get(view.role)))
     if not views:
         names = ", ".join(s.name for s in sequences)
         raise EgorelightError(f"no training frame: sequences {names} have no reconstruction (recon/) at a posed "
@@ -185,13 +198,16 @@ class TrainSettings:
 def _tensors(views: Sequence[TrainingView], ray_maps: dict, self_masks: dict) -> dict[str, torch.Tensor]:
     """Stacked training tensors: image (N,3,H,W) [0,1], rays (N,3,H,W), log range (N,1,H,W),
     supervised (N,1,H,W), weight of the mask loss (N,1,H,W) (inside the lens, outside the
-    self-occlusion mask)."""
+    self-occlusion mask), and the stereo range (N,1,H,W) metres when the views have one."""
     images = np.stack([v.image for v in views]).astype(np.float32) / 255.0
     rays = np.stack([ray_maps[v.role][0] for v in views]).astype(np.float32)
     inside = np.stack([ray_maps[v.role][1] & ~self_masks[v.role] for v in views])
     supervised = np.stack([v.supervised for v in views]) & inside
     log_range = np.log(np.where(supervised, np.stack([v.range for v in views]), 1.0))
-    return {
+    stereo = {}
+    if views[0].stereo is not None:
+        stereo["stereo"] = torch.from_numpy(np.stack([v.stereo for v in views]).astype(np.float32))[:, None]
+    return {**stereo,
         "image": torch.from_numpy(images).permute(0, 3, 1, 2).contiguous(),
         "rays": torch.from_numpy(rays).permute(0, 3, 1, 2).contiguous(),
         "log_range": torch.from_numpy(log_range.astype(np.float32))[:, None],
@@ -201,14 +217,25 @@ def _tensors(views: Sequence[TrainingView], ray_maps: dict, self_masks: dict) ->
 
 
 def depth_losses(model: DepthNet, batch: dict[str, torch.Tensor], prior: torch.Tensor | None = None) -> dict:
-    """L1 on log range over supervised pixels and the body-mask BCE inside the lens."""
-    log_range, logit = model(batch["image"], batch["rays"], prior)
+    """L1 on log range over supervised pixels and the body-mask BCE inside the lens; for a network
+    with the uncertainty, ``depth`` adds the Laplace negative log-likelihood |e|/b + log b of the
+    *detached* error, so the scale learns to predict the error while the range and the mask train
+    as without it (the coupled likelihood down-weights hard pixels and starved the mask: on the
+    tiny capture its training IoU fell from 0.8 to 0.2)."""
+    log_range, logit, log_scale = model(batch["image"], batch["rays"], prior, batch.get("stereo"))
     sup = batch["supervised"].float()
     inside = batch["inside"].float()
-    l_depth = ((log_range - batch["log_range"]).abs() * sup).sum() / sup.sum().clamp_min(1.0)
+    error = (log_range - batch["log_range"]).abs()
+    count = sup.sum().clamp_min(1.0)
+    l_l1 = (error * sup).sum() / count
     bce = torch.nn.functional.binary_cross_entropy_with_logits(logit, sup, reduction="none")
     l_mask = (bce * inside).sum() / inside.sum().clamp_min(1.0)
-    return {"depth_l1_log": l_depth, "mask_bce": l_mask}
+    out = {"depth_l1_log": l_l1, "depth": l_l1, "mask_bce": l_mask}
+    if log_scale is not None:
+        nll = error.detach() * torch.exp(-log_scale) + log_scale
+        out["scale_nll"] = (nll * sup).sum() / count
+        out["depth"] = l_l1 + out["scale_nll"]
+    return out
 
 
 def _crop(batch: dict[str, torch.Tensor], size: int, generator: torch.Generator) -> dict[str, torch.Tensor]:
@@ -241,8 +268,12 @@ def train_depth_net(views: Sequence[TrainingView], ray_maps: dict, self_masks: d
     if prior_fn is not None:
         priors = torch.cat([prior_fn(data["image"][i:i + 4]) for i in range(0, len(views), 4)])
     mean = float(data["log_range"][data["supervised"]].median())
+    stereo_input = bool(net_cfg.stereo_input)
+    if stereo_input != ("stereo" in data):
+        raise EgorelightError("net.stereo_input and the training views disagree: give the views their stereo ranges"
+                              if stereo_input else "the training views carry stereo ranges the network does not take")
     torch.manual_seed(settings.seed)
-    model = DepthNet(int(net_cfg.base_channels), int(net_cfg.levels), 1 if priors is not None else 0, mean).to(device)
+    model = DepthNet.from_config(net_cfg, 1 if priors is not None else 0, mean).to(device)
     optimizer = torch.optim.Adam(model.parameters(), lr=settings.lr)
     scheduler = torch.optim.lr_scheduler.OneCycleLR(optimizer, max_lr=settings.lr, total_steps=max(settings.steps, 1),
                                                     pct_start=0.1)
@@ -258,7 +289,7 @@ def train_depth_net(views: Sequence[TrainingView], ray_maps: dict, self_masks: d
         batch["image"] = jitter(batch["image"], generator)
         batch = {k: rank_share(v).to(device) for k, v in batch.items()}  # this process's share under torchrun
         losses = depth_losses(model, batch, batch.get("prior"))
-        losses["loss"] = settings.w_depth * losses["depth_l1_log"] + settings.w_mask * losses["mask_bce"]
+        losses["loss"] = settings.w_depth * losses.pop("depth") + settings.w_mask * losses["mask_bce"]
         return losses
 
     curve = train(model, optimizer, step_fn, settings.steps, checkpoint=checkpoint,
@@ -278,7 +309,7 @@ def fit_report(model: DepthNet, views: Sequence[TrainingView], ray_maps: dict, s
     for i in range(0, len(views), 4):
         batch = {k: v[i:i + 4] for k, v in data.items()}
         prior = prior_fn(batch["image"]) if prior_fn is not None else None
-        log_range, logit = model(batch["image"], batch["rays"], prior)
+        log_range, logit, _ = model(batch["image"], batch["rays"], prior, batch.get("stereo"))
         sup = batch["supervised"]
         net.append((log_range - batch["log_range"]).abs()[sup])
         constant.append((model.log_range_mean - batch["log_range"]).abs()[sup])
@@ -297,11 +328,13 @@ class PredictSettings:
     min_range_m: float
     max_range_m: float
     edge_relative_jump: float
+    max_uncertainty: float
 
     @classmethod
     def from_config(cls, cfg) -> "PredictSettings":
         p = cfg.predict
-        return cls(float(p.mask_threshold), float(p.min_range_m), float(p.max_range_m), float(p.edge_relative_jump))
+        return cls(float(p.mask_threshold), float(p.min_range_m), float(p.max_range_m), float(p.edge_relative_jump),
+                   float(p.max_uncertainty))
 
 
 def clean_range(range_map: np.ndarray, inside: np.ndarray, settings: PredictSettings) -> np.ndarray:
@@ -314,14 +347,23 @@ def clean_range(range_map: np.ndarray, inside: np.ndarray, settings: PredictSett
 
 @torch.no_grad()
 def predict_ranges_net(model: DepthNet, views: Sequence[EgoView], ray_maps: dict, self_masks: dict,
-                       settings: PredictSettings, device: torch.device, prior_fn=None) -> dict[str, np.ndarray]:
-    """Range maps (H,W) float32 (0 = none) of a frame's views, by role."""
+                       settings: PredictSettings, device: torch.device, prior_fn=None,
+                       stereo: dict | None = None) -> dict[str, np.ndarray]:
+    """Range maps (H,W) float32 (0 = none) of a frame's views, by role; ``stereo``: the frame's
+    stereo range maps by role, for a network with the stereo input."""
     images = torch.from_numpy(np.stack([v.image for v in views]).astype(np.float32) / 255.0).permute(0, 3, 1, 2)
     rays = torch.from_numpy(np.stack([ray_maps[v.role][0] for v in views]).astype(np.float32)).permute(0, 3, 1, 2)
     prior = prior_fn(images).to(device) if prior_fn is not None else None
-    log_range, logit = model(images.to(device), rays.to(device), prior)
+    stereo_maps = None
+    if model.stereo_input:
+        if stereo is None:
+            raise EgorelightError("this egodepth network takes stereo ranges: none were given")
+        stereo_maps = torch.from_numpy(np.stack([stereo[v.role] for v in views]).astype(np.float32))[:, None].to(device)
+    log_range, logit, log_scale = model(images.to(device), rays.to(device), prior, stereo_maps)
     ranges = torch.exp(log_range[:, 0]).cpu().numpy()
     body = torch.sigmoid(logit[:, 0]).cpu().numpy() > settings.mask_threshold
+    if log_scale is not None and settings.max_uncertainty > 0:
+        body &= torch.exp(log_scale[:, 0]).cpu().numpy() < settings.max_uncertainty
     out = {}
     for i, v in enumerate(views):
         inside = ray_maps[v.role][1] & ~self_masks.get(v.role, False) & body[i]

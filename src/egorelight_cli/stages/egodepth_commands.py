@@ -63,9 +63,8 @@ def load_depth_model(path: Path, roles) -> tuple[ed.DepthNet, dict, dict, Artifa
     if artifact.single_file:
         raise EgorelightError("an egodepth model is a directory artifact", path)
     payload = read_model(artifact.root, stage=ed.MODEL_STAGE)
-    arch = payload.architecture
     try:
-        model = ed.DepthNet(int(arch["base_channels"]), int(arch["levels"]), int(arch["prior_channels"]))
+        model = ed.DepthNet.from_architecture(payload.architecture)
         model.load_state_dict(payload.state_dict)
     except (KeyError, RuntimeError) as exc:
         raise EgorelightError(f"egodepth model does not match the network ({type(exc).__name__}: {exc})", path) from None
@@ -109,10 +108,14 @@ class EgodepthCommands:
             if writer.single_file:
                 raise EgorelightError("an egodepth model is a directory artifact: give --out a directory name", out)
             started = time.perf_counter()
-            views = ed.supervision(capture, calibration, sequences, roles, float(cfg.train.near_m),
-                                   int(cfg.train.max_frames))
-            masks = ed.self_occlusion_masks(views, float(cfg.train.self_occlusion_fraction))
             ray_maps = {r: ed.camera_ray_map(capture.ego_camera(r)) for r in roles}
+            stereo = None
+            if bool(cfg.net.stereo_input):
+                sgbm, settings = ed.SGBMDepth(capture, calibration, roles, cfg), ed.PredictSettings.from_config(cfg)
+                stereo = lambda views: sgbm(views, ray_maps, settings)  # noqa: E731
+            views = ed.supervision(capture, calibration, sequences, roles, float(cfg.train.near_m),
+                                   int(cfg.train.max_frames), stereo)
+            masks = ed.self_occlusion_masks(views, float(cfg.train.self_occlusion_fraction))
             writer.timing["supervision_s"] = round(time.perf_counter() - started, 3)
             console.info(f"train egodepth: {len(views)} supervised views from {', '.join(names)}")
             started = time.perf_counter()
@@ -200,7 +203,8 @@ def _predict_sequence(writer: ArtifactWriter, cfg: Config, capture: Capture, cal
     settings = ed.PredictSettings.from_config(cfg)
     ray_maps = {r: ed.camera_ray_map(capture.ego_camera(r)) for r in roles}
     model = model.to(device) if model is not None else None
-    sgbm = ed.SGBMDepth(capture, calibration, roles, cfg) if method == "sgbm" or bool(cfg.eval.compare_sgbm) else None
+    needs_sgbm = method == "sgbm" or bool(cfg.eval.compare_sgbm) or (model is not None and model.stereo_input)
+    sgbm = ed.SGBMDepth(capture, calibration, roles, cfg) if needs_sgbm else None
     truth = ed.GroundTruth(capture, sequence, float(cfg.eval.occluder_margin_m))
     P = int(cfg.pointcloud.points)
     k = int(cfg.pointcloud.normal_neighbours)
@@ -225,10 +229,11 @@ def _predict_sequence(writer: ArtifactWriter, cfg: Config, capture: Capture, cal
         rng = np.random.default_rng([int(cfg.seed), f])  # per frame: a frame's points do not depend on its shard
         views = [ed.load_view(capture, calibration, sequence, r, f) for r in roles]
         started = time.perf_counter()
+        stereo = sgbm(views, ray_maps, settings) if sgbm is not None else None
         if method == "net":
-            ranges = ed.predict_ranges_net(model, views, ray_maps, masks, settings, device, prior)
+            ranges = ed.predict_ranges_net(model, views, ray_maps, masks, settings, device, prior, stereo)
         else:
-            ranges = sgbm(views, ray_maps, settings)
+            ranges = stereo
         timing["depth_s"] += time.perf_counter() - started
         started = time.perf_counter()
         points[t], normals[t], valid[t], depths = ed.frame_pointcloud(views, ranges, ray_maps, P, k, rng)
@@ -240,11 +245,11 @@ def _predict_sequence(writer: ArtifactWriter, cfg: Config, capture: Capture, cal
             surface, truth_maps = truth.frame(f, views)
             distance = surface(points[t][valid[t]])
             constant = float(np.exp(float(model.log_range_mean))) if model is not None else None
-            scores[""].add_frame(t, ranges, truth_maps, distance, constant)
-            if "sgbm_" in scores:
-                other = sgbm(views, ray_maps, settings)
-                other_points, _, other_valid, _ = ed.frame_pointcloud(views, other, ray_maps, P, k, rng)
-                scores["sgbm_"].add_frame(t, other, truth_maps, surface(other_points[other_valid]))
+            compared = "sgbm_" in scores
+            scores[""].add_frame(t, ranges, truth_maps, distance, constant, stereo if compared else None)
+            if compared:
+                other_points, _, other_valid, _ = ed.frame_pointcloud(views, stereo, ray_maps, P, k, rng)
+                scores["sgbm_"].add_frame(t, stereo, truth_maps, surface(other_points[other_valid]), other=ranges)
         if start + t in preview_at:
             preview_rows[start + t] = ed.depth_preview_row(views, ranges, truth_maps, int(cfg.preview.scale))
             if start + t == preview_at[0]:  # the point cloud of the first previewed frame

@@ -3,7 +3,9 @@
 The pointcloud artifact keeps ``scores.npz``: per output frame and depth method (the run's method,
 prefix ``""``; SGBM compared on the same frames, ``sgbm_``), the sums the depth metrics need
 (pixels inside the true body mask, pixels the method covers, their summed AbsRel and squared
-error, and the constant-depth baseline's summed AbsRel) and the point-to-surface distance of every
+error, the constant-depth baseline's summed AbsRel, and the pixels both methods cover with the
+method's summed AbsRel there: the like-for-like comparison, since each method's own AbsRel is
+taken over the pixels it chose to cover) and the point-to-surface distance of every
 valid point (NaN-padded to the points per frame); plus the frames' ``posed`` flags. The manifest's
 metrics are :func:`depth_metrics` of those rows, so a whole run and merged frame shards
 (:mod:`egorelight_cli.sharding`) compute them the same way.
@@ -14,7 +16,10 @@ from __future__ import annotations
 import numpy as np
 
 SCORES_NPZ = "scores.npz"
-SUMS = ("total", "covered", "abs_rel_sum", "sq_err_sum", "constant_abs_rel_sum")
+SUMS = ("total", "covered", "abs_rel_sum", "sq_err_sum", "constant_abs_rel_sum", "common_covered",
+        "common_abs_rel_sum")
+OPTIONAL_SUMS = {"constant_abs_rel_sum": "has_constant", "common_covered": "has_common",
+                 "common_abs_rel_sum": "has_common"}
 
 
 class DepthScores:
@@ -24,15 +29,23 @@ class DepthScores:
         self.sums = {name: np.zeros(frames, np.float64) for name in SUMS}
         self.surface = np.full((frames, points), np.nan, np.float32)
         self.has_constant = False
+        self.has_common = False
 
     def add_frame(self, t: int, ranges: dict, truth_maps: dict, distance: np.ndarray,
-                  constant: float | None = None) -> None:
+                  constant: float | None = None, other: dict | None = None) -> None:
         """Score frame ``t``: range maps (H,W) per role against ``truth_maps`` (role -> (true range,
-        mask)) inside the mask, ``distance`` (N,) of the valid points from the true surface, and
-        ``constant``: the baseline that predicts that range everywhere on the same pixels."""
+        mask)) inside the mask, ``distance`` (N,) of the valid points from the true surface,
+        ``constant``: the baseline that predicts that range everywhere on the same pixels, and
+        ``other``: the other method's range maps, whose covered pixels define the common ones."""
         for role, (truth, mask) in truth_maps.items():
             pred = ranges[role]
             have = mask & (pred > 0)
+            if other is not None:
+                self.has_common = True
+                both = have & (other[role] > 0)
+                self.sums["common_covered"][t] += int(both.sum())
+                self.sums["common_abs_rel_sum"][t] += float((np.abs(pred[both] - truth[both]) / truth[both])
+                                                            .astype(np.float64).sum())
             self.sums["total"][t] += int(mask.sum())
             self.sums["covered"][t] += int(have.sum())
             self.sums["abs_rel_sum"][t] += float((np.abs(pred[have] - truth[have]) / truth[have]).astype(np.float64).sum())
@@ -45,7 +58,8 @@ class DepthScores:
 
     def arrays(self, prefix: str) -> dict[str, np.ndarray]:
         """The rows of :data:`SCORES_NPZ` for this method (names prefixed with ``prefix``)."""
-        out = {f"{prefix}{name}": v for name, v in self.sums.items() if name != "constant_abs_rel_sum" or self.has_constant}
+        out = {f"{prefix}{name}": v for name, v in self.sums.items()
+               if name not in OPTIONAL_SUMS or getattr(self, OPTIONAL_SUMS[name])}
         out[f"{prefix}surface_distance_m"] = self.surface
         return out
 
@@ -60,6 +74,11 @@ def depth_metrics(rows: dict[str, np.ndarray], prefix: str) -> dict:
         out[f"{prefix}depth_rmse_cm"] = float(np.sqrt(rows[f"{prefix}sq_err_sum"].sum() / covered) * 100)
         if f"{prefix}constant_abs_rel_sum" in rows:
             out[f"{prefix}depth_absrel_constant_baseline"] = float(rows[f"{prefix}constant_abs_rel_sum"].sum() / covered)
+    if f"{prefix}common_covered" in rows:
+        common = float(rows[f"{prefix}common_covered"].sum())
+        out[f"{prefix}depth_common_coverage"] = common / max(total, 1.0)
+        if common:
+            out[f"{prefix}depth_absrel_common"] = float(rows[f"{prefix}common_abs_rel_sum"].sum() / common)
     distance = rows[f"{prefix}surface_distance_m"]
     distance = distance[np.isfinite(distance)].astype(np.float64)
     if distance.size:
