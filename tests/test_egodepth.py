@@ -96,7 +96,8 @@ def test_pointcloud_artifact_and_metrics(net_cloud, tiny_capture, oracle_calibra
     assert cloud.valid.mean() > 0.5
     np.testing.assert_allclose(np.linalg.norm(cloud.normals[cloud.valid], axis=1), 1.0, atol=1e-4)
     m = artifact.metrics
-    for key in ("depth_absrel", "depth_rmse_cm", "point_to_surface_cm", "sgbm_depth_absrel", "sgbm_point_to_surface_cm"):
+    for key in ("depth_absrel", "depth_rmse_cm", "point_to_surface_cm", "sgbm_depth_absrel", "sgbm_point_to_surface_cm",
+                "depth_absrel_common", "sgbm_depth_absrel_common"):
         assert np.isfinite(m[key]), key
     assert m["point_to_surface_median_cm"] < 3.0
     assert (net_cloud / "preview.png").is_file() and (net_cloud / "preview_pointcloud.png").is_file()
@@ -249,3 +250,22 @@ def test_network_beats_sgbm_on_held_out_frames(net_cloud):
     assert m["depth_absrel_common"] < m["sgbm_depth_absrel_common"]
     assert m["point_to_surface_cm"] < 0.8 * m["sgbm_point_to_surface_cm"]
     assert m["depth_coverage"] > 0.5 * m["sgbm_depth_coverage"]
+
+
+def test_common_pixel_absrel_is_taken_where_both_methods_have_depth():
+    from egorelight_cli.stages.egodepth_scores import DepthScores, depth_metrics
+
+    truth = np.full((2, 4), 0.5, np.float32)
+    mask = np.ones((2, 4), bool)
+    net = np.array([[0.55, 0.55, 0.6, 0.0], [0.5, 0.5, 0.0, 0.0]], np.float32)  # AbsRel 0.1 0.1 0.2 - 0 0 - -
+    sgbm = np.array([[0.45, 0.0, 0.5, 1.0], [0.0, 0.6, 0.0, 0.0]], np.float32)  # AbsRel 0.1 - 0 1 - 0.2 - -
+    scores = {"": DepthScores(1, 3), "sgbm_": DepthScores(1, 3)}
+    scores[""].add_frame(0, {"a": net}, {"a": (truth, mask)}, np.zeros(0), other={"a": sgbm})
+    scores["sgbm_"].add_frame(0, {"a": sgbm}, {"a": (truth, mask)}, np.zeros(0), other={"a": net})
+    rows = {k: v for s in ("", "sgbm_") for k, v in scores[s].arrays(s).items()}
+    ours, theirs = depth_metrics(rows, ""), depth_metrics(rows, "sgbm_")
+    assert ours["depth_common_coverage"] == theirs["sgbm_depth_common_coverage"] == pytest.approx(3 / 8)  # (0,0) (0,2) (1,1)
+    assert ours["depth_absrel_common"] == pytest.approx((0.1 + 0.2 + 0.0) / 3, rel=1e-5)
+    assert theirs["sgbm_depth_absrel_common"] == pytest.approx((0.1 + 0.0 + 0.2) / 3, rel=1e-5)
+    assert ours["depth_absrel"] == pytest.approx(0.4 / 5, rel=1e-5)
+    assert theirs["sgbm_depth_absrel"] == pytest.approx(1.3 / 4, rel=1e-5)
