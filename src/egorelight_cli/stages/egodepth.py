@@ -204,16 +204,16 @@ def _tensors(views: Sequence[TrainingView], ray_maps: dict, self_masks: dict) ->
     inside = np.stack([ray_maps[v.role][1] & ~self_masks[v.role] for v in views])
     supervised = np.stack([v.supervised for v in views]) & inside
     log_range = np.log(np.where(supervised, np.stack([v.range for v in views]), 1.0))
-    stereo = {}
-    if views[0].stereo is not None:
-        stereo["stereo"] = torch.from_numpy(np.stack([v.stereo for v in views]).astype(np.float32))[:, None]
-    return {**stereo,
+    tensors = {
         "image": torch.from_numpy(images).permute(0, 3, 1, 2).contiguous(),
         "rays": torch.from_numpy(rays).permute(0, 3, 1, 2).contiguous(),
         "log_range": torch.from_numpy(log_range.astype(np.float32))[:, None],
         "supervised": torch.from_numpy(supervised)[:, None],
         "inside": torch.from_numpy(inside)[:, None],
     }
+    if views[0].stereo is not None:
+        tensors["stereo"] = torch.from_numpy(np.stack([v.stereo for v in views]).astype(np.float32))[:, None]
+    return tensors
 
 
 def depth_losses(model: DepthNet, batch: dict[str, torch.Tensor], prior: torch.Tensor | None = None) -> dict:
