@@ -203,8 +203,9 @@ def _predict_sequence(writer: ArtifactWriter, cfg: Config, capture: Capture, cal
     settings = ed.PredictSettings.from_config(cfg)
     ray_maps = {r: ed.camera_ray_map(capture.ego_camera(r)) for r in roles}
     model = model.to(device) if model is not None else None
-    needs_sgbm = method == "sgbm" or bool(cfg.eval.compare_sgbm) or (model is not None and model.stereo_input)
-    sgbm = ed.SGBMDepth(capture, calibration, roles, cfg) if needs_sgbm else None
+    compare = method == "net" and bool(cfg.eval.compare_sgbm)
+    uses_stereo = method == "sgbm" or (model is not None and model.stereo_input)  # SGBM on every frame
+    sgbm = ed.SGBMDepth(capture, calibration, roles, cfg) if uses_stereo or compare else None
     truth = ed.GroundTruth(capture, sequence, float(cfg.eval.occluder_margin_m))
     P = int(cfg.pointcloud.points)
     k = int(cfg.pointcloud.normal_neighbours)
@@ -218,7 +219,7 @@ def _predict_sequence(writer: ArtifactWriter, cfg: Config, capture: Capture, cal
     normals = np.zeros((T, P, 3), np.float32)
     valid = np.zeros((T, P), bool)
     scores = {"": DepthScores(T, P)}
-    if method == "net" and sgbm is not None:
+    if compare:
         scores["sgbm_"] = DepthScores(T, P)
     timing = {"depth_s": 0.0, "pointcloud_s": 0.0}
     preview_rows = {}
@@ -229,7 +230,7 @@ def _predict_sequence(writer: ArtifactWriter, cfg: Config, capture: Capture, cal
         rng = np.random.default_rng([int(cfg.seed), f])  # per frame: a frame's points do not depend on its shard
         views = [ed.load_view(capture, calibration, sequence, r, f) for r in roles]
         started = time.perf_counter()
-        stereo = sgbm(views, ray_maps, settings) if sgbm is not None else None
+        stereo = sgbm(views, ray_maps, settings) if uses_stereo else None
         if method == "net":
             ranges = ed.predict_ranges_net(model, views, ray_maps, masks, settings, device, prior, stereo)
         else:
@@ -245,9 +246,10 @@ def _predict_sequence(writer: ArtifactWriter, cfg: Config, capture: Capture, cal
             surface, truth_maps = truth.frame(f, views)
             distance = surface(points[t][valid[t]])
             constant = float(np.exp(float(model.log_range_mean))) if model is not None else None
-            compared = "sgbm_" in scores
-            scores[""].add_frame(t, ranges, truth_maps, distance, constant, stereo if compared else None)
-            if compared:
+            if compare and stereo is None:  # scored only: a monocular network's frame with ground truth
+                stereo = sgbm(views, ray_maps, settings)
+            scores[""].add_frame(t, ranges, truth_maps, distance, constant, stereo if compare else None)
+            if compare:
                 other_points, _, other_valid, _ = ed.frame_pointcloud(views, stereo, ray_maps, P, k, rng)
                 scores["sgbm_"].add_frame(t, stereo, truth_maps, surface(other_points[other_valid]), other=ranges)
         if start + t in preview_at:
