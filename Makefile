@@ -188,7 +188,10 @@ $(eval $(call PER_FRAME_RULES,pointcloud,$(CAPTURE) $(CALIBRATION) $(EGODEPTH_MO
 # default one on CURVE_FRAMES frames (evenly spaced over the training sequence after egopose's
 # validation split; 0 = all of them). egopose's model scores SEQ itself (with the mean-pose
 # baseline); egodepth's point clouds of SEQ are scored next to SGBM on the same frames.
-CURVE_FRAMES ?= 4 8 16 0
+# On the cpu capture egopose trains on the headset-only ego_bulk (1,000 frames) and egodepth on the
+# 128-frame ego_train; CURVE_FRAMES, when given, sets both.
+EGOPOSE_CURVE_FRAMES ?= $(or $(CURVE_FRAMES),32 128 512 0)
+EGODEPTH_CURVE_FRAMES ?= $(or $(CURVE_FRAMES),8 16 32 64)
 
 $(SUBJECT)/curves/egopose/%/manifest.json: $(CAPTURE) $(CALIBRATION)
 	$(EGO) $(EGOFLAGS) train egopose $(EGO_INPUTS) --set train.max_frames=$* --set evaluate_sequence=$(SEQ) \
@@ -202,10 +205,10 @@ $(SUBJECT)/curves/egodepth/%/manifest.json: $(SUBJECT)/curves/egodepth_model/%/m
 		--out $(SUBJECT)/curves/egodepth/$*
 
 .PHONY: egopose-curve egodepth-curve
-egopose-curve: $(foreach n,$(CURVE_FRAMES),$(SUBJECT)/curves/egopose/$(n)/manifest.json)
+egopose-curve: $(foreach n,$(EGOPOSE_CURVE_FRAMES),$(SUBJECT)/curves/egopose/$(n)/manifest.json)
 	@$(BIN)/python -m egorelight_cli.report.table --keys training_frames,$(SEQ)_mpjpe_body_cm,$(SEQ)_mpjpe_hands_cm,$(SEQ)_per_frame_mpjpe_body_cm,$(SEQ)_per_frame_mpjpe_hands_cm,$(SEQ)_mean_pose_mpjpe_body_cm,$(SEQ)_mean_pose_mpjpe_hands_cm $^
 
-egodepth-curve: $(foreach n,$(CURVE_FRAMES),$(SUBJECT)/curves/egodepth/$(n)/manifest.json)
+egodepth-curve: $(foreach n,$(EGODEPTH_CURVE_FRAMES),$(SUBJECT)/curves/egodepth/$(n)/manifest.json)
 	@$(BIN)/python -m egorelight_cli.report.table --keys depth_absrel,point_to_surface_cm,sgbm_depth_absrel,sgbm_point_to_surface_cm $^
 
 # ---------------------------------------------------------------- animate (Sec. depth-conditioned animatable avatar)

@@ -84,6 +84,8 @@ def test_training_reduces_the_loss_and_beats_a_constant_depth(trained_model):
     assert (trained_model / "curve.png").is_file()
     model, masks, extra, _ = load_depth_model(trained_model, ROLES)
     assert extra["roles"] == list(ROLES) and set(masks) == set(ROLES)
+    # the headset-only ego_bulk (purpose ego_train, no reconstructions) supervises nothing
+    assert m["training_sequences"] == ["ego_train"]
 
 
 def test_pointcloud_artifact_and_metrics(net_cloud, tiny_capture, oracle_calibration):

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import torch
 
+from egorelight_cli.errors import EgorelightError
 from egorelight_cli.geometry.cameras import project
 from egorelight_cli.geometry.rotations import invert_rigid
 from egorelight_cli.nn.egopose_net import (EgoPoseNet, RigGeometry, heading_frame, load_backbone_weights,
@@ -336,3 +337,38 @@ def test_max_frames_trains_on_an_evenly_spaced_subset(tiny_capture, oracle_calib
                                              "net.channels=8", "train.max_frames=2"))
     result = train_egopose(frames, mocap, rig_geometry(capture, oracle_calibration), EgoPoseSettings(cfg))
     assert result.info["training_frames"] == 2
+
+
+def test_default_training_sequence_is_the_largest_ego_train_sequence(tiny_capture, tmp_path):
+    from egorelight_cli.io.capture import Capture
+    from egorelight_cli.stages.egopose_commands import default_training_sequence
+
+    # the tiny capture: ego_train (3 content frames) over the headset-only ego_bulk (2)
+    assert default_training_sequence(Capture(tiny_capture)) == "ego_train"
+
+    class Sequences:  # just what the choice reads
+        def __init__(self, docs):
+            self.docs = docs
+            self.root = tmp_path / f"capture{len(list(tmp_path.iterdir()))}"
+
+        def sequences_with_purpose(self, purpose):
+            from egorelight_cli.io.capture import SequenceInfo
+
+            out = []
+            for name, doc in self.docs.items():
+                (self.root / name).mkdir(parents=True, exist_ok=True)
+                if doc.pop("mocap", True):
+                    (self.root / name / "mocap.npz").write_bytes(b"")
+                if doc["purpose"] == purpose:
+                    out.append(SequenceInfo(name, self.root / name, doc))
+            return out
+
+    def doc(content, purpose="ego_train", ego=("down_left",), mocap=True):
+        return {"purpose": purpose, "content_frame_ids": list(range(content)), "streams": {"ego": list(ego)},
+                "mocap": mocap}
+
+    assert default_training_sequence(Sequences({"a": doc(5), "b": doc(9), "c": doc(50, "test")})) == "b"
+    assert default_training_sequence(Sequences({"b": doc(9), "a": doc(9)})) == "a"  # ties: by name
+    assert default_training_sequence(Sequences({"a": doc(5), "b": doc(9, ego=())})) == "a"
+    with pytest.raises(EgorelightError, match="give --seq"):
+        default_training_sequence(Sequences({"a": doc(5, mocap=False)}))

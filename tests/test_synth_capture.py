@@ -27,7 +27,7 @@ from egorelight_cli.io.npz import read_npz
 from egorelight_cli.render.envmaps import make_envmap, write_envmap
 from egorelight_cli.synth.hmd import EGO_ROLES
 from egorelight_cli.synth.preview import tonemap
-from egorelight_cli.synth.sequences import SEQUENCES
+from egorelight_cli.synth.sequences import PURPOSES, SEQUENCES
 from egorelight_cli.geometry.rigid import interpolate_poses
 
 
@@ -85,14 +85,14 @@ def test_capture_layout_is_complete(capture):
     for seq in SEQUENCES:
         folder = capture / "sequences" / seq
         info = _json(folder / "sequence.json")
-        assert info["purpose"] == seq and info["fps"] > 0
+        assert info["purpose"] == PURPOSES.get(seq, seq) and info["fps"] > 0
         assert len(info["lights"]) == len(info["frame_ids"])
         for cam in info["streams"]["studio"]:
             for fid in info["frame_ids"]:
                 assert (folder / "studio" / cam / f"{fid:06d}.exr").is_file()
-                assert (folder / "masks" / cam / f"{fid:06d}.png").is_file()
+                assert (folder / "masks" / cam / f"{fid:06d}.png").is_file() == info["streams"]["masks"]
             for fid in info["content_frame_ids"]:
-                assert (folder / "normals" / cam / f"{fid:06d}.exr").is_file()
+                assert (folder / "normals" / cam / f"{fid:06d}.exr").is_file() == info["streams"]["normals"]
         for role in info["streams"]["ego"]:
             for eid in info["ego_frame_ids"]:
                 assert (folder / "ego" / role / f"{eid:06d}.png").is_file()
@@ -110,6 +110,13 @@ def test_capture_layout_is_complete(capture):
     train = _json(capture / "sequences/ego_train/sequence.json")
     assert not set(test["held_out_cameras"]) & set(train["streams"]["studio"])
     assert any(roles[c] == "tracking" for c in train["streams"]["studio"])
+    # the headset-only sequence: head-tracking cameras and down-facing views only, for ego training
+    bulk = _json(capture / "sequences/ego_bulk/sequence.json")
+    assert bulk["purpose"] == "ego_train" and bulk["hmd_worn"] and bulk["streams"]["mocap"]
+    assert {roles[c] for c in bulk["streams"]["studio"]} == {"tracking"}
+    assert bulk["streams"]["ego"] == ["down_left", "down_right"]
+    assert not (bulk["streams"]["masks"] or bulk["streams"]["normals"] or bulk["streams"]["recon"])
+    assert not (capture / "sequences/ego_bulk/ego/front_left").exists()
     # the user's --envmap lights the test sequence; the in-the-wild map is hidden in groundtruth
     lit = [light for light in test["lights"] if light["pattern"] == "envmap"]
     assert lit[-1]["envmap"] == "user_my_room"

@@ -95,12 +95,13 @@ STAGE_COMMANDS = (
             Output("calibration", "Calibration directory.", file_okay=False),
             inputs=(Input("--capture", "capture", "Capture artifact.", ("capture",), required=True),)),
     Command(("train", "egopose"), "egopose",
-            "Fit the egocentric pose estimator to a person's ego_train sequence and its mocap.",
+            "Fit the egocentric pose estimator to a person's ego_train(-purpose) sequence and its mocap.",
             "egorelight_cli.stages.egopose_commands:train_command", model_out(),
             inputs=(capture(), calibration(),
                     Input("--backbone-weights", "backbone_weights", "Pretrained encoder weights (torch state dict); "
                           "default: train from scratch.", files=(".pt",))),
-            options=(sequence(None, "Training sequence with mocap (default: ego_train)."),
+            options=(sequence(None, "Training sequence with mocap (default: train.sequence, else the "
+                                        "ego_train-purpose sequence with the most ego frames)."),
                      Option("--no-jitter", "no_jitter", "Train without colour jitter (the paper's ablation).",
                             type=bool, default=False, config_key="train.colour_jitter", config_value=False),
                      resume())),

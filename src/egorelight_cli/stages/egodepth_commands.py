@@ -93,9 +93,12 @@ class EgodepthCommands:
         capture, capture_artifact, calibration, calibration_artifact = load_inputs(capture_path, calibration_path)
         cfg = self.run.config()
         roles = tuple(cfg.roles)
-        names = list(cfg.train.sequences) or [s.name for s in capture.sequences_with_purpose("ego_train")]
+        # the reconstructions supervise: headset-only sequences (no recon stream) are left out
+        names = list(cfg.train.sequences) or [s.name for s in capture.sequences_with_purpose("ego_train")
+                                               if s.streams.get("recon")]
         if not names:
-            raise EgorelightError("capture has no ego_train sequence (set train.sequences)", capture.root)
+            raise EgorelightError("capture has no ego_train sequence with reconstructions (set train.sequences)",
+                                  capture.root)
         sequences = [capture.sequence(n) for n in names]
         device = self.run.compute_device()
         prior = _prior(backbone, device)  # checks the folder before anything runs
@@ -130,6 +133,7 @@ class EgodepthCommands:
             write_model(writer.workdir, ModelPayload(ed.MODEL_STAGE, model.architecture(), model.state_dict(), extra,
                                                      curve), curve_title="egodepth training loss")
             writer.metrics.update({
+                "training_sequences": names,
                 "training_views": len(views), "training_frames": len({(v.sequence, v.frame_id) for v in views}),
                 "supervised_fraction": float(np.mean([v.supervised.mean() for v in views])),
                 "self_occlusion_fraction": {r: float(m.mean()) for r, m in masks.items()},

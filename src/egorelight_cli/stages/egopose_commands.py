@@ -102,6 +102,17 @@ def read_backbone_weights(path: Path) -> dict[str, torch.Tensor]:
 
 
 # ---------------------------------------------------------------------------------- commands
+def default_training_sequence(capture) -> str:
+    """The sequence of purpose ``ego_train`` with ego images, mocap and the most content frames (ties: by name),
+    e.g. the headset-only ``ego_bulk`` of the cpu preset over its ``ego_train``."""
+    candidates = [s for s in capture.sequences_with_purpose("ego_train")
+                  if s.streams.get("ego") and s.mocap_path().is_file()]
+    if not candidates:
+        raise EgorelightError("the capture has no sequence of purpose ego_train with ego images and mocap.npz; "
+                              "give --seq", capture.root / "sequences")
+    return max(sorted(candidates, key=lambda s: s.name), key=lambda s: len(s.content_frame_ids)).name  # first of ties
+
+
 @dataclass(frozen=True)
 class EgoPoseCommands:
     """``egopose`` and ``train egopose`` over one :class:`StageRun` (the global options)."""
@@ -117,7 +128,7 @@ class EgoPoseCommands:
         capture, capture_artifact = open_capture(capture_path)
         calibration, calibration_artifact = open_calibration(calibration_path)
         cfg = self.run.config()
-        sequence = sequence or str(cfg.train.sequence)
+        sequence = sequence or str(cfg.train.sequence) or default_training_sequence(capture)
         info = capture.sequence(sequence)
         info.require_stream("ego")
         if not info.mocap_path().is_file():

@@ -39,6 +39,8 @@ Frame files are named by zero-padded frame id (``000012.exr``). ``sequence.json`
                                  (+ "light_ids": [int] for group)},
      "streams": {"studio": [camera names], "masks", "normals", "recon", "mocap": bool,
                  "ego": [roles], "head_pose": bool},
+     (a headset-only sequence such as ``ego_bulk``, purpose ego_train, lists only the head-tracking
+     studio cameras, the down-facing ego roles, and no masks, normals or recon)
      "held_out_cameras": [names] (test), "hmd_worn": bool, "board": bool,
      "sync": {"code": [1 flash / 0 dark], "standby_frames", "code_start_frame"}}
 
@@ -265,10 +267,17 @@ def _studio_cameras_of(rig: Rig, plan: SequencePlan) -> list[tuple[Camera, str]]
     for cam, role in rig.cameras:
         if role == TRACKING_ROLE and not plan.hmd_on:
             continue
+        if role != TRACKING_ROLE and plan.headset_only:
+            continue
         if cam.name in rig.held_out and plan.name != "test":
             continue
         out.append((cam, role))
     return out
+
+
+def _ego_roles_of(plan: SequencePlan) -> list[str]:
+    """The headset cameras that record in ``plan`` (headset-only sequences: the down-facing ones)."""
+    return list(DOWN_ROLES) if plan.headset_only else list(EGO_ROLES)
 
 
 def virtual_dome(cfg) -> LightStage:
@@ -310,7 +319,9 @@ def simulate_sequence(writer: ArtifactWriter, rig: Rig, plan: SequencePlan) -> d
     stats = SequenceStats()
     d = cfg.derived
     recon_on = plan.has_studio and seq in list(d.recon_sequences)
-    normals_on = plan.has_studio and bool(d.normals)
+    normals_on = plan.has_studio and bool(d.normals) and not plan.headset_only
+    masks_on = plan.has_studio and not plan.headset_only
+    ego_roles = _ego_roles_of(plan)
     viewpoints = np.array([cam.centre_world for cam, _ in cams]) if cams else np.zeros((0, 3))
     directions = derived.sphere_directions(int(d.recon_directions))
     content_ids = np.flatnonzero(content)
@@ -337,7 +348,9 @@ def simulate_sequence(writer: ArtifactWriter, rig: Rig, plan: SequencePlan) -> d
             write_exr_layers(writer.path(f"{base}/studio/{cam.name}/{frame_name(fid, '.exr')}"), {"": hdr},
                              half=bool(cfg.studio.half_float))
             subject = layout.subject_mask(result.face_id)
-            write_image(writer.path(f"{base}/masks/{cam.name}/{frame_name(fid, '.png')}"), derived.mask_image(subject))
+            if masks_on:
+                write_image(writer.path(f"{base}/masks/{cam.name}/{frame_name(fid, '.png')}"),
+                            derived.mask_image(subject))
             if normals_on and content[i]:
                 n = derived.normal_estimate(result.normal, subject, cam, rng, d.normal_noise_smooth, d.normal_noise_pixel)
                 write_exr_layers(writer.path(f"{base}/normals/{cam.name}/{frame_name(fid, '.exr')}"), {"normal": n},
@@ -359,7 +372,7 @@ def simulate_sequence(writer: ArtifactWriter, rig: Rig, plan: SequencePlan) -> d
             else:  # a detailed place around the scan's start, lit (low-frequency) like its map
                 surroundings, yaw = rig.wild_surroundings[plan.wild_envmap], plan.wild_yaw_deg
                 place_at = wild_place(cfg, head)
-            for role in EGO_ROLES:
+            for role in ego_roles:
                 camera = hmd.cameras[role].camera(head[i])
                 image, result = frame.render_ego(camera, rig.responses[role], surroundings, yaw, rng, **place_at)
                 write_image(writer.path(f"{base}/ego/{role}/{frame_name(ego_ids[i], '.png')}"), image)
@@ -424,15 +437,15 @@ def _write_sequence_files(writer, rig: Rig, plan: SequencePlan, keypoints, bodie
     lights = [{k: v for k, v in entry.items() if k != "content"} for entry in plan.lights]
     has_ego = plan.has_ego
     writer.save_json(f"{base}/sequence.json", {
-        "name": seq, "purpose": seq, "fps": plan.fps,
+        "name": seq, "purpose": plan.purpose, "fps": plan.fps,
         "frame_ids": ids.tolist() if plan.has_studio else [],
         "ego_frame_ids": [int(e) for e in ego_ids if e >= 0] if has_ego else [],
         "content_frame_ids": ids[content].tolist() if plan.has_studio else [],
         "lights": lights if plan.has_studio else [],
-        "streams": {"studio": [cam.name for cam, _ in cams], "masks": plan.has_studio,
-                    "normals": plan.has_studio and bool(cfg.derived.normals),
+        "streams": {"studio": [cam.name for cam, _ in cams], "masks": plan.has_studio and not plan.headset_only,
+                    "normals": plan.has_studio and bool(cfg.derived.normals) and not plan.headset_only,
                     "recon": plan.has_studio and seq in list(cfg.derived.recon_sequences),
-                    "mocap": plan.has_studio, "ego": list(EGO_ROLES) if has_ego else [],
+                    "mocap": plan.has_studio, "ego": _ego_roles_of(plan) if has_ego else [],
                     "head_pose": not plan.has_studio},
         "held_out_cameras": plan.held_out, "hmd_worn": plan.hmd_on, "board": seq == "handeye", "sync": plan.sync,
     })

@@ -7,6 +7,7 @@ sequence        studio  HMD   ego streams            light pattern (after the sy
 =============== ======= ===== ====================== ==========================================
 handeye         yes     on    down + front           flat; a ChArUco board stands in front
 ego_train       yes     on    down + front           flat
+ego_bulk        track   on    down                   flat (the headset views at the scale learning needs)
 relight_train   yes     off   none                   flat / HDR envmap alternating (train maps)
 test            yes     on    down + front           unseen HDR envmaps (test maps, ``--envmap``)
 wild            no      on    down + front, tracker  none (an unseen environment lights the body)
@@ -20,6 +21,11 @@ small ``scale``), then a known code of ``flash`` (bright flat) and ``dark`` fram
 was exposed together with studio frame ``e + ego_offset``. Per-frame brightness of the two
 streams cross-correlated over the flash code recovers the offset. The ego cameras run at the
 studio fps here (30 fps in the paper); ``relight_train`` (60 fps in the paper) has no ego stream.
+
+**Headset-only sequences** (``ego_bulk``, purpose ``ego_train``): long sessions for the egocentric
+networks (egopose needs >= 1,000 frames; issue 21) in which only the head-tracking studio cameras
+record (for the head poses) and the headset only its down-facing cameras. They cost a third of an
+``ego_train`` frame: no studio views, masks, normals or reconstructions.
 """
 
 from __future__ import annotations
@@ -32,10 +38,15 @@ from egorelight_cli.errors import EgorelightError
 from egorelight_cli.structures.character import Character
 from egorelight_cli.synth.motions import SCRIPTED, Segment, compose_motion
 
-SEQUENCES = ("handeye", "ego_train", "relight_train", "test", "wild")
-#: purpose -> (has studio, HMD worn)
+SEQUENCES = ("handeye", "ego_train", "relight_train", "test", "wild", "ego_bulk")
+#: name -> (has studio, HMD worn)
 LAYOUT = {"handeye": (True, True), "ego_train": (True, True), "relight_train": (True, False),
-          "test": (True, True), "wild": (False, True)}
+          "test": (True, True), "wild": (False, True), "ego_bulk": (True, True)}
+#: name -> purpose (``sequence.json``), where they differ
+PURPOSES = {"ego_bulk": "ego_train"}
+#: sequences whose studio records only the head-tracking cameras and whose headset records only
+#: its down-facing cameras
+HEADSET_ONLY = frozenset({"ego_bulk"})
 _SEED_CODES = {name: i + 1 for i, name in enumerate(SEQUENCES)}
 
 
@@ -44,7 +55,7 @@ class SequencePlan:
     """Everything needed to simulate one sequence.
 
     Attributes:
-        name: sequence name (= purpose here).
+        name: sequence name (its purpose: :data:`PURPOSES`, else the name).
         fps: frame rate of the studio (and ego) stream.
         frame_ids: (N,) frame ids of the simulated timeline (studio ids; for ``wild``, ego ids).
         lights: per frame ``{"pattern", "envmap", "yaw_deg", "olat_index", "scale"}`` (studio light).
@@ -59,6 +70,7 @@ class SequencePlan:
         sync: ``{"code", "standby_frames", "code_start_frame"}`` of the flash prefix ({} without one).
         tracker_theta: wild only: (N*k,D) the motion sampled ``k = tracker_theta.shape[0] // N``
             times per frame (sample ``j`` at ``j / (k fps)`` s), for the headset tracker's higher rate.
+        headset_only: only the head-tracking studio cameras and the down-facing ego cameras record.
     """
 
     name: str
@@ -75,6 +87,11 @@ class SequencePlan:
     wild_yaw_deg: float = 0.0
     sync: dict = field(default_factory=dict)
     tracker_theta: np.ndarray | None = None
+    headset_only: bool = False
+
+    @property
+    def purpose(self) -> str:
+        return PURPOSES.get(self.name, self.name)
 
     @property
     def num_frames(self) -> int:
@@ -134,7 +151,7 @@ def _motion_segments(purpose: str, scfg, motion_types, rng: np.random.Generator)
     types = list(motion_types) if motion_types else list(SCRIPTED)
     if purpose == "relight_train":
         types = types[::-1]  # the same repertoire, repeated in another order
-    if purpose == "test":
+    if purpose in ("test", "ego_bulk"):  # ego_bulk: the repertoire in its own order, new instances
         order = list(rng.permutation(types))
         return [Segment(m, float(scfg.segment_s)) for m in order]
     return [Segment(m, float(scfg.segment_s)) for m in types]
@@ -163,7 +180,7 @@ def plan_sequence(name: str, cfg, character: Character | None, seed: int, train_
         sync = {"code": [int(b) for b in cfg.sync.code], "standby_frames": standby, "code_start_frame": standby}
     content = int(scfg.frames)
     wild_envmap, wild_yaw = None, 0.0
-    if name in ("handeye", "ego_train"):
+    if name in ("handeye", "ego_train", "ego_bulk"):
         lights += [light_entry("flat", cfg.lights.flat_intensity) for _ in range(content)]
     elif name == "relight_train":
         if not train_envmaps:
@@ -223,4 +240,5 @@ def plan_sequence(name: str, cfg, character: Character | None, seed: int, train_
     return SequencePlan(name=name, fps=fps, frame_ids=frame_ids, lights=lights, theta=theta, has_studio=has_studio,
                         hmd_on=hmd_on, ego_offset=offset, segments=segments,
                         held_out=list(held_out) if name == "test" else [],
-                        wild_envmap=wild_envmap, wild_yaw_deg=wild_yaw, sync=sync, tracker_theta=tracker_theta)
+                        wild_envmap=wild_envmap, wild_yaw_deg=wild_yaw, sync=sync, tracker_theta=tracker_theta,
+                        headset_only=name in HEADSET_ONLY)
