@@ -10,7 +10,7 @@ import torch
 
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.io.model import ModelPayload, read_model, write_model
-from egorelight_cli.nn.augment import ColourJitter, apply_colour_jitter
+from egorelight_cli.nn.augment import ColourJitter, ShadingJitter, apply_colour_jitter
 from egorelight_cli.nn.training import train
 from egorelight_cli.nn.unet import UNet, sample_feature_map
 
@@ -52,6 +52,25 @@ def test_colour_jitter_identity_and_properties():
     torch.testing.assert_close(apply_colour_jitter(grey, darker), grey * 0.5, atol=1e-5, rtol=0)
     out = ColourJitter(0.8, 0.8, 0.8, 0.5)(images, generator=g)
     assert out.min() >= 0 and out.max() <= 1 and not torch.allclose(out, images)
+
+
+def test_shading_jitter_is_a_smooth_positive_gain_field_of_the_given_strength():
+    images = torch.rand(2, 3, 17, 17, generator=torch.Generator().manual_seed(1)) * 0.5
+    torch.testing.assert_close(ShadingJitter(0.0, 3, 0.0)(images), images)
+    shading = ShadingJitter(0.7, 3, 0.1)
+    log_gain = torch.log(shading.field(4000, 17, 17, torch.Generator().manual_seed(0)))
+    # at the grid nodes (corners, centre) the log gain is the draw: std sqrt(0.7^2 + 0.1^2)
+    nodes = log_gain[:, :, ::8, ::8]
+    assert abs(float(nodes.std()) - math.hypot(0.7, 0.1)) < 0.02 and abs(float(nodes.mean())) < 0.02
+    # linear between nodes 8 px apart: along a node row every step is the node difference / 8
+    step = (log_gain[..., ::8, 1:] - log_gain[..., ::8, :-1])
+    node_step = (nodes[..., 1:] - nodes[..., :-1]).repeat_interleave(8, dim=-1) / 8
+    torch.testing.assert_close(step, node_step, atol=1e-4, rtol=1e-4)
+    # the three channels share the shading and differ only by the tint
+    assert float((log_gain[:, 0] - log_gain[:, 1]).std()) < 0.25
+    same = ShadingJitter(0.7)(images, torch.Generator().manual_seed(3))
+    torch.testing.assert_close(same, ShadingJitter(0.7)(images, torch.Generator().manual_seed(3)))
+    assert same.min() >= 0 and same.max() <= 1 and not torch.allclose(same, images)
 
 
 def _regression_problem():

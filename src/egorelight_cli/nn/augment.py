@@ -57,3 +57,35 @@ def apply_colour_jitter(images: torch.Tensor, factors: torch.Tensor) -> torch.Te
     yiq = torch.cat([yiq[:, :1], chroma_i, chroma_q], dim=1)
     rgb = torch.einsum("ij,bjhw->bihw", torch.linalg.inv(to_yiq), yiq)
     return rgb.clamp(0.0, 1.0)
+
+
+@dataclass(frozen=True)
+class ShadingJitter:
+    """A smooth random gain field per sample: the flat light of the training capture re-shaded as
+    if lit from some side (directional light, shadowed regions, coloured fill), which a global
+    colour jitter cannot imitate.
+
+    The log gain is a ``grid`` x ``grid`` array of normal draws (standard deviation ``strength``,
+    in natural-log units) per image, bilinearly upsampled over the whole image (align_corners), so
+    it varies over about 1/(grid-1) of the image; each cell's colour tint is a further normal draw
+    of standard deviation ``tint`` per channel. ``strength`` 0 leaves the images unchanged.
+    """
+
+    strength: float = 0.5
+    grid: int = 3
+    tint: float = 0.1
+
+    def field(self, batch: int, height: int, width: int, generator: torch.Generator | None = None) -> torch.Tensor:
+        """(batch, 3, height, width) gains (positive)."""
+        g = max(int(self.grid), 2)
+        log_gain = torch.randn(batch, 1, g, g, generator=generator) * float(self.strength)
+        log_gain = log_gain + torch.randn(batch, 3, g, g, generator=generator) * float(self.tint)
+        up = torch.nn.functional.interpolate(log_gain, size=(height, width), mode="bilinear", align_corners=True)
+        return torch.exp(up)
+
+    def __call__(self, images: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
+        """Re-shade (B,3,H,W) images in [0,1]."""
+        if float(self.strength) <= 0 and float(self.tint) <= 0:
+            return images
+        gains = self.field(images.shape[0], images.shape[2], images.shape[3], generator)
+        return (images * gains.to(images.device, images.dtype)).clamp(0.0, 1.0)

@@ -13,7 +13,8 @@ holds what is around it, callable without the CLI:
   view's 3D keypoints and the fused 3D keypoints; hand joints are re-weighted
   (``train.hand_weight``). Colour jitter in brightness, contrast, saturation and hue
   (``train.colour_jitter``) is the paper's key finding: it is what makes the estimator survive
-  the unseen test lighting. Phase 2 fits the temporal module on windows of the frozen per-frame
+  the unseen test lighting. A smooth random gain field per view (``train.jitter.shading``, not in
+  the paper) re-shades the flat-lit training images as if lit from one side. Phase 2 fits the temporal module on windows of the frozen per-frame
   estimates of several jittered copies of the training frames (plus noise). Both phases
   checkpoint and resume (:func:`egorelight_cli.nn.training.train`). The last
   ``train.validation_fraction`` of the frames (a contiguous block, so no near-duplicates of
@@ -292,14 +293,18 @@ def frame_losses(out: dict[str, torch.Tensor], target: Targets, rows: torch.Tens
 
 def jitter_images(images: torch.Tensor, settings: EgoPoseSettings, generator: torch.Generator,
                   enabled: bool) -> torch.Tensor:
-    """(B,V,3,h,w) float images, each view with its own colour-jitter draw when ``enabled``."""
+    """(B,V,3,h,w) float images, each view with its own colour-jitter draw when ``enabled``,
+    then (``train.jitter.shading`` > 0) its own smooth gain field (:class:`ShadingJitter`)."""
     if not enabled:
         return images
-    from egorelight_cli.nn.augment import ColourJitter
+    from egorelight_cli.nn.augment import ColourJitter, ShadingJitter
 
     j = settings.train.jitter
     jitter = ColourJitter(float(j.brightness), float(j.contrast), float(j.saturation), float(j.hue))
-    return jitter(images.flatten(0, 1), generator=generator).reshape(images.shape)
+    flat = jitter(images.flatten(0, 1), generator=generator)
+    if float(j.shading) > 0:
+        flat = ShadingJitter(float(j.shading), int(j.shading_grid), float(j.shading_tint))(flat, generator=generator)
+    return flat.reshape(images.shape)
 
 
 def occlude_and_noise(images: torch.Tensor, settings: EgoPoseSettings, generator: torch.Generator) -> torch.Tensor:
