@@ -156,3 +156,16 @@ def test_settings_dataclasses_take_their_defaults_from_the_stage_files():
     with pytest.raises(EgorelightError, match="'lm.iterations' must be at least 1"):
         IKSettings(lm_iterations=0)  # built in code, checked against the same rules (check_settings)
     check_settings(NetSettings())
+
+
+def test_config_pickles_to_an_equal_frozen_config():
+    import pickle
+
+    from egorelight_cli.config import Config
+
+    cfg = Config({"a": {"b": [1, [2, 3]], "c": "x"}, "d": 1.5}, stage="synth", version=3, preset="cpu")
+    back = pickle.loads(pickle.dumps(cfg))
+    assert back == cfg and back.to_dict() == cfg.to_dict() and back.a.b == (1, (2, 3))
+    assert (back.stage, back.version, back.preset) == ("synth", 3, "cpu")
+    with pytest.raises(AttributeError, match="frozen"):
+        back.d = 2

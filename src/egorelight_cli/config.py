@@ -57,6 +57,8 @@ class Config(Mapping):
         return self._data[key]
 
     def __getattr__(self, key: str) -> Any:
+        if key.startswith("__") or key == "_data":  # unpickling looks these up before _data exists
+            raise AttributeError(key)
         try:
             return self._data[key]
         except KeyError:
@@ -64,6 +66,9 @@ class Config(Mapping):
 
     def __setattr__(self, key: str, value: Any) -> None:
         raise AttributeError("Config is frozen")
+
+    def __reduce__(self):
+        return (Config, (self.to_dict(), self.stage, self.version, self.preset))
 
     def __iter__(self) -> Iterator[str]:
         return iter(self._data)

@@ -458,6 +458,41 @@ def _write_preview(writer, rig: Rig, plan: SequencePlan, rows: list) -> None:
     write_image(writer.path(f"previews/{plan.name}.png"), image)
 
 
+def simulate_sequences(writer: ArtifactWriter, rig: Rig, plans: list[SequencePlan], workers: int) -> dict:
+    """Simulate every plan (sequence name -> metrics, in the order of ``plans``); ``workers`` > 1
+    runs that many sequences at a time in worker processes (each sequence has its own seeded
+    random state, so the capture does not depend on ``workers``), longest first. Their render
+    timings are added to ``rig.timer``."""
+    if workers <= 1:
+        return {plan.name: simulate_sequence(writer, rig, plan) for plan in plans}
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    threads = max(1, torch.get_num_threads() // workers)
+    order = sorted(plans, key=lambda plan: -plan.num_frames)
+    with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"), initializer=_init_worker,
+                             initargs=(threads, console.verbosity())) as pool:
+        futures = {plan.name: pool.submit(_simulate_in_worker, writer, rig, plan) for plan in order}
+        results = {name: future.result() for name, future in futures.items()}
+    for _, timer in results.values():
+        for kind, seconds in timer.seconds.items():
+            rig.timer.seconds[kind] = rig.timer.seconds.get(kind, 0.0) + seconds
+            rig.timer.counts[kind] = rig.timer.counts.get(kind, 0) + timer.counts[kind]
+    return {plan.name: results[plan.name][0] for plan in plans}
+
+
+def _init_worker(threads: int, verbosity: int) -> None:
+    from egorelight_cli.runtime import apply_threads
+
+    apply_threads(threads)
+    console.set_verbosity(verbosity)
+
+
+def _simulate_in_worker(writer: ArtifactWriter, rig: Rig, plan: SequencePlan) -> tuple[dict, Timer]:
+    rig = replace(rig, timer=Timer())
+    return simulate_sequence(writer, rig, plan), rig.timer
+
+
 # ------------------------------------------------------------------------------------ top level
 def write_capture(writer: ArtifactWriter, cfg: Config, character: Character,
                   user_envmaps: dict[str, np.ndarray] | None = None, motion_theta: np.ndarray | None = None) -> None:
@@ -468,8 +503,7 @@ def write_capture(writer: ArtifactWriter, cfg: Config, character: Character,
     scan_vertices, scan_faces = scan_subject(rig.subject, cfg.scan, int(cfg.seed))
     write_ply(writer.path("scan/scan.ply"), scan_vertices.astype(np.float32), scan_faces)
     offsets: dict[str, int] = {}
-    metrics: dict = {}
-    frames = 0
+    plans: list[SequencePlan] = []
     for seq in cfg.sequences_enabled:
         if seq not in SEQUENCES:
             raise EgorelightError(f"unknown sequence {seq!r} in sequences_enabled; known: {', '.join(SEQUENCES)}")
@@ -477,8 +511,9 @@ def write_capture(writer: ArtifactWriter, cfg: Config, character: Character,
                              rig.wild_envmaps, rig.held_out, motion_theta)
         if plan.ego_offset is not None and plan.has_studio:
             offsets[seq] = int(plan.ego_offset)
-        metrics[seq] = simulate_sequence(writer, rig, plan)
-        frames += plan.num_frames
+        plans.append(plan)
+    metrics = simulate_sequences(writer, rig, plans, min(torch.get_num_threads(), len(plans)))
+    frames = sum(plan.num_frames for plan in plans)
     write_global_truth(writer, rig, offsets)
     writer.metrics.update(_summary(metrics, rig.timer, frames))
     writer.units.update({"length": "m", "angle": "rad", "studio": "linear radiance (lights' units x exposure)",
