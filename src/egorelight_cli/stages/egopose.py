@@ -7,22 +7,23 @@ holds what is around it, callable without the CLI:
 * :func:`load_frames`: the two down-facing views of a sequence at the network's input size,
   their head poses (``H = T_world_from_hmd`` from the calibration; for ``wild`` without aligned
   poses, the capture's own tracker poses) and which frames are usable.
-* :func:`train_egopose`: per-person training on ``ego_train`` supervised by its markerless mocap
-  (content frames only: the prefix is the sync flash code). Phase 1 fits the per-frame network
-  with losses on the 2D heatmap positions (mocap projected into each view), the ranges, each
-  view's 3D keypoints and the fused 3D keypoints; hand joints are re-weighted
+* :func:`train_egopose`: per-person training on an ``ego_train``-purpose sequence supervised by its
+  markerless mocap (content frames only: the prefix is the sync flash code). Phase 1 fits the
+  per-frame network with losses on the 2D heatmap positions (mocap projected into each view), the
+  ranges, each view's 3D keypoints and the fused 3D keypoints; hand joints are re-weighted
   (``train.hand_weight``). Colour jitter in brightness, contrast, saturation and hue
-  (``train.colour_jitter``) is the paper's key finding: it is what makes the estimator survive
-  the unseen test lighting. A smooth random gain field per view (``train.jitter.shading``, not in
-  the paper) re-shades the flat-lit training images as if lit from one side. Phase 2 fits the temporal module on windows of the frozen per-frame
-  estimates of several jittered copies of the training frames (plus noise). Both phases
-  checkpoint and resume (:func:`egorelight_cli.nn.training.train`). The last
-  ``train.validation_fraction`` of the frames (a contiguous block, so no near-duplicates of
-  training frames) is held out: its first half fits, per joint, how much to trust the estimate
-  over the training mean pose (``train.prior_blend``), its second half gives the validation
-  MPJPE against the mocap, before and after the blend (never scored on the frames it was fit on).
-  With ~30 training frames the network memorises the legs, which the down-facing cameras
-  barely see behind the torso; the blend moves them towards the mean pose and keeps the hands.
+  (``train.colour_jitter``) is the paper's key finding: it is what makes the estimator survive the
+  unseen test lighting. A smooth random gain field per view (``train.jitter.shading``, not in the
+  paper) re-shades the flat-lit training images as if lit from one side. Phase 2 fits the temporal
+  module on windows of the frozen per-frame estimates of several jittered copies of the training
+  frames (plus noise). Both phases checkpoint and resume
+  (:func:`egorelight_cli.nn.training.train`). The last ``train.validation_fraction`` of the frames
+  (a contiguous block, so no near-duplicates of training frames) is held out: its first half fits,
+  per joint, how much to trust the estimate over the training mean pose (``train.prior_blend``),
+  its second half gives the validation MPJPE against the mocap, before and after the blend (never
+  scored on the frames it was fit on). With ~30 training frames the network memorises the legs,
+  which the down-facing cameras barely see behind the torso; the blend moves them towards the mean
+  pose and keeps the hands.
 * :func:`predict`: per-frame estimates, temporal refinement, confidences (agreement of the two
   views); frames whose head pose is flagged invalid get NaN and confidence 0, never invented.
 * :func:`keypoint_metrics`: MPJPE (cm) of body (15) and hand (42) keypoints against ground truth.
