@@ -372,3 +372,25 @@ def test_default_training_sequence_is_the_largest_ego_train_sequence(tiny_captur
     assert default_training_sequence(Sequences({"a": doc(5), "b": doc(9, ego=())})) == "a"
     with pytest.raises(EgorelightError, match="give --seq"):
         default_training_sequence(Sequences({"a": doc(5, mocap=False)}))
+
+
+def test_a_hundred_headset_frames_beat_the_mean_pose_on_held_out_frames(tmp_path):
+    """The margin the tiny fixture (3 training frames) cannot show: a tiny-preset capture with a
+    120-frame headset-only ego_bulk (96 training frames after the validation split, 600 steps,
+    about 100 s on 2 cores). Held out: the contiguous validation block at the end of ego_bulk
+    (flat-lit) and the test sequence (unseen HDR lighting). Measured: validation body / hands
+    4.5 / 8.0 cm vs the mean pose's 6.6 / 21.2; test 3.5 / 7.5 vs 4.3 / 13.8."""
+    from egorelight_cli.synth.groundtruth import write_oracle_calibration
+
+    capture = tmp_path / "capture"
+    assert run_cli(["synth", "--preset", "tiny", "-q", "--set", "sequences_enabled=[ego_bulk,test]", "--set",
+                    "sequences.ego_bulk.frames=120", "--set", "groundtruth.uv_sequences=[]", "--out", str(capture)]) == 0
+    calibration = write_oracle_calibration(capture, tmp_path / "calibration")
+    assert run_cli(["train", "egopose", "--preset", "tiny", "-q", "--capture", str(capture), "--calibration",
+                    str(calibration), "--set", "train.steps=600", "--out", str(tmp_path / "model")]) == 0
+    m = json.loads((tmp_path / "model" / "manifest.json").read_text())["metrics"]
+    assert m["training_frames"] >= 90 and m["validation_scored_frames"] >= 8
+    assert m["validation_mpjpe_body_cm"] < 0.8 * m["validation_mean_pose_mpjpe_body_cm"]
+    assert m["validation_mpjpe_hands_cm"] < 0.5 * m["validation_mean_pose_mpjpe_hands_cm"]
+    assert m["test_mpjpe_body_cm"] < m["test_mean_pose_mpjpe_body_cm"]
+    assert m["test_mpjpe_hands_cm"] < 0.7 * m["test_mean_pose_mpjpe_hands_cm"]
