@@ -101,7 +101,7 @@ STAGE_COMMANDS = (
                     Input("--backbone-weights", "backbone_weights", "Pretrained encoder weights (torch state dict); "
                           "default: train from scratch.", files=(".pt",))),
             options=(sequence(None, "Training sequence with mocap (default: train.sequence, else the "
-                                        "ego_train-purpose sequence with the most ego frames)."),
+                                        "ego_train-purpose sequence with the most content frames)."),
                      Option("--no-jitter", "no_jitter", "Train without colour jitter (the paper's ablation).",
                             type=bool, default=False, config_key="train.colour_jitter", config_value=False),
                      resume())),

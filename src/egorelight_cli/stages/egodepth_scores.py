@@ -40,19 +40,21 @@ class DepthScores:
         for role, (truth, mask) in truth_maps.items():
             pred = ranges[role]
             have = mask & (pred > 0)
-            if other is not None:
-                self.has_common = True
-                both = have & (other[role] > 0)
-                self.sums["common_covered"][t] += int(both.sum())
-                self.sums["common_abs_rel_sum"][t] += float((np.abs(pred[both] - truth[both]) / truth[both])
-                                                            .astype(np.float64).sum())
+            true_range = truth[have]
+            error = (pred[have] - true_range).astype(np.float64)
+            abs_rel = np.abs(error) / true_range
             self.sums["total"][t] += int(mask.sum())
             self.sums["covered"][t] += int(have.sum())
-            self.sums["abs_rel_sum"][t] += float((np.abs(pred[have] - truth[have]) / truth[have]).astype(np.float64).sum())
-            self.sums["sq_err_sum"][t] += float(((pred[have] - truth[have]) ** 2).astype(np.float64).sum())
+            self.sums["abs_rel_sum"][t] += float(abs_rel.sum())
+            self.sums["sq_err_sum"][t] += float((error ** 2).sum())
+            if other is not None:
+                self.has_common = True
+                both = other[role][have] > 0  # of the covered pixels, those the other method covers too
+                self.sums["common_covered"][t] += int(both.sum())
+                self.sums["common_abs_rel_sum"][t] += float(abs_rel[both].sum())
             if constant is not None:
                 self.has_constant = True
-                self.sums["constant_abs_rel_sum"][t] += float((np.abs(constant - truth[have]) / truth[have])
+                self.sums["constant_abs_rel_sum"][t] += float((np.abs(constant - true_range) / true_range)
                                                               .astype(np.float64).sum())
         self.surface[t, :len(distance)] = distance
 

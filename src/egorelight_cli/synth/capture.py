@@ -275,9 +275,16 @@ def _studio_cameras_of(rig: Rig, plan: SequencePlan) -> list[tuple[Camera, str]]
     return out
 
 
-def _ego_roles_of(plan: SequencePlan) -> list[str]:
-    """The headset cameras that record in ``plan`` (headset-only sequences: the down-facing ones)."""
-    return list(DOWN_ROLES) if plan.headset_only else list(EGO_ROLES)
+def _streams_of(cfg, plan: SequencePlan, cams: list[tuple[Camera, str]]) -> dict:
+    """``sequence.json``'s ``streams``: what records in ``plan`` (headset-only sequences: the
+    head-tracking cameras without masks or normals, and the down-facing ego cameras)."""
+    studio_images = plan.has_studio and not plan.headset_only
+    return {"studio": [cam.name for cam, _ in cams], "masks": studio_images,
+            "normals": studio_images and bool(cfg.derived.normals),
+            "recon": plan.has_studio and plan.name in list(cfg.derived.recon_sequences),
+            "mocap": plan.has_studio,
+            "ego": (list(DOWN_ROLES) if plan.headset_only else list(EGO_ROLES)) if plan.has_ego else [],
+            "head_pose": not plan.has_studio}
 
 
 def virtual_dome(cfg) -> LightStage:
@@ -318,10 +325,7 @@ def simulate_sequence(writer: ArtifactWriter, rig: Rig, plan: SequencePlan) -> d
     content = plan.content_mask()
     stats = SequenceStats()
     d = cfg.derived
-    recon_on = plan.has_studio and seq in list(d.recon_sequences)
-    normals_on = plan.has_studio and bool(d.normals) and not plan.headset_only
-    masks_on = plan.has_studio and not plan.headset_only
-    ego_roles = _ego_roles_of(plan)
+    streams = _streams_of(cfg, plan, cams)
     viewpoints = np.array([cam.centre_world for cam, _ in cams]) if cams else np.zeros((0, 3))
     directions = derived.sphere_directions(int(d.recon_directions))
     content_ids = np.flatnonzero(content)
@@ -348,10 +352,10 @@ def simulate_sequence(writer: ArtifactWriter, rig: Rig, plan: SequencePlan) -> d
             write_exr_layers(writer.path(f"{base}/studio/{cam.name}/{frame_name(fid, '.exr')}"), {"": hdr},
                              half=bool(cfg.studio.half_float))
             subject = layout.subject_mask(result.face_id)
-            if masks_on:
+            if streams["masks"]:
                 write_image(writer.path(f"{base}/masks/{cam.name}/{frame_name(fid, '.png')}"),
                             derived.mask_image(subject))
-            if normals_on and content[i]:
+            if streams["normals"] and content[i]:
                 n = derived.normal_estimate(result.normal, subject, cam, rng, d.normal_noise_smooth, d.normal_noise_pixel)
                 write_exr_layers(writer.path(f"{base}/normals/{cam.name}/{frame_name(fid, '.exr')}"), {"normal": n},
                                  half=True)
@@ -372,7 +376,7 @@ def simulate_sequence(writer: ArtifactWriter, rig: Rig, plan: SequencePlan) -> d
             else:  # a detailed place around the scan's start, lit (low-frequency) like its map
                 surroundings, yaw = rig.wild_surroundings[plan.wild_envmap], plan.wild_yaw_deg
                 place_at = wild_place(cfg, head)
-            for role in ego_roles:
+            for role in streams["ego"]:
                 camera = hmd.cameras[role].camera(head[i])
                 image, result = frame.render_ego(camera, rig.responses[role], surroundings, yaw, rng, **place_at)
                 write_image(writer.path(f"{base}/ego/{role}/{frame_name(ego_ids[i], '.png')}"), image)
@@ -386,7 +390,7 @@ def simulate_sequence(writer: ArtifactWriter, rig: Rig, plan: SequencePlan) -> d
                     stats.board_detected += int(detect_board(image, cfg.board) >= 4)
                 if i in preview_at:
                     tiles.append((f"ego {role}", image))
-        if recon_on and content[i]:
+        if streams["recon"] and content[i]:
             n_subject = layout.subject_vertex_count()
             subject_faces = layout.subject_faces()
             sv = vertices[:n_subject]
@@ -442,11 +446,7 @@ def _write_sequence_files(writer, rig: Rig, plan: SequencePlan, keypoints, bodie
         "ego_frame_ids": [int(e) for e in ego_ids if e >= 0] if has_ego else [],
         "content_frame_ids": ids[content].tolist() if plan.has_studio else [],
         "lights": lights if plan.has_studio else [],
-        "streams": {"studio": [cam.name for cam, _ in cams], "masks": plan.has_studio and not plan.headset_only,
-                    "normals": plan.has_studio and bool(cfg.derived.normals) and not plan.headset_only,
-                    "recon": plan.has_studio and seq in list(cfg.derived.recon_sequences),
-                    "mocap": plan.has_studio, "ego": _ego_roles_of(plan) if has_ego else [],
-                    "head_pose": not plan.has_studio},
+        "streams": _streams_of(cfg, plan, cams),
         "held_out_cameras": plan.held_out, "hmd_worn": plan.hmd_on, "board": seq == "handeye", "sync": plan.sync,
     })
 
@@ -475,9 +475,7 @@ def simulate_sequences(writer: ArtifactWriter, rig: Rig, plans: list[SequencePla
         futures = {plan.name: pool.submit(_simulate_in_worker, writer, rig, plan) for plan in order}
         results = {name: future.result() for name, future in futures.items()}
     for _, timer in results.values():
-        for kind, seconds in timer.seconds.items():
-            rig.timer.seconds[kind] = rig.timer.seconds.get(kind, 0.0) + seconds
-            rig.timer.counts[kind] = rig.timer.counts.get(kind, 0) + timer.counts[kind]
+        rig.timer.merge(timer)
     return {plan.name: results[plan.name][0] for plan in plans}
 
 

@@ -71,6 +71,12 @@ class Timer:
         self.seconds[kind] = self.seconds.get(kind, 0.0) + seconds
         self.counts[kind] = self.counts.get(kind, 0) + 1
 
+    def merge(self, other: "Timer") -> None:
+        """Add ``other``'s seconds and counts (e.g. a worker process's) to these."""
+        for kind, seconds in other.seconds.items():
+            self.seconds[kind] = self.seconds.get(kind, 0.0) + seconds
+            self.counts[kind] = self.counts.get(kind, 0) + other.counts[kind]
+
     def per_camera_frame(self) -> dict:
         return {k: self.seconds[k] / max(self.counts[k], 1) for k in self.seconds}
 
