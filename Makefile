@@ -212,18 +212,25 @@ egodepth-curve: $(foreach n,$(EGODEPTH_CURVE_FRAMES),$(SUBJECT)/curves/egodepth/
 	@$(BIN)/python -m egorelight_cli.report.table --keys depth_absrel,point_to_surface_cm,sgbm_depth_absrel,sgbm_point_to_surface_cm $^
 
 # ---------------------------------------------------------------- animate (Sec. depth-conditioned animatable avatar)
-# Trained on the mocap motion + ego point cloud of ANIMATE_TRAIN_SEQ; the depth-agnostic student is
-# fine-tuned with xi = 0 on the flat-lit frames of ANIMATE_STUDENT_SEQ (for the appearance stages).
+# Trained on the ego point cloud of ANIMATE_TRAIN_SEQ under the motion the headset pipeline estimates
+# for it (egopose -> ik, ANIMATE_TRAIN_MOTIONS; on the cpu capture egopose never trained on those frames),
+# so the depth encoding carries the corrections it has to make at run time; the studio's mocap alone
+# left it almost nothing to correct (the network then ignored the depth; measured in issue 21's note).
+# ANIMATE_TRAIN_MOTIONS="motion_mocap" restores the mocap; several folders train on all of them.
+# The depth-agnostic student is fine-tuned with xi = 0 on the flat-lit frames of ANIMATE_STUDENT_SEQ
+# (for the appearance stages).
 ANIMATE_MODEL := $(SUBJECT)/models/animate/manifest.json
 ANIMATE_STUDENT := $(SUBJECT)/models/animate_student/manifest.json
 ANIMATE_TRAIN_SEQ ?= ego_train
+ANIMATE_TRAIN_MOTIONS ?= motion
 ANIMATE_STUDENT_SEQ ?= relight_train
 
-$(ANIMATE_MODEL): $(CAPTURE) $(CHARACTER) $(SUBJECT)/motion_mocap/$(ANIMATE_TRAIN_SEQ)/manifest.json \
-		$(SUBJECT)/pointcloud/$(ANIMATE_TRAIN_SEQ)/manifest.json
+$(ANIMATE_MODEL): $(CAPTURE) $(CHARACTER) $(SUBJECT)/pointcloud/$(ANIMATE_TRAIN_SEQ)/manifest.json \
+		$(foreach m,$(ANIMATE_TRAIN_MOTIONS),$(SUBJECT)/$(m)/$(ANIMATE_TRAIN_SEQ)/manifest.json)
 	$(EGO) $(EGOFLAGS) train animate --capture $(SUBJECT)/capture --seq $(ANIMATE_TRAIN_SEQ) \
-		--motion $(SUBJECT)/motion_mocap/$(ANIMATE_TRAIN_SEQ) --pointcloud $(SUBJECT)/pointcloud/$(ANIMATE_TRAIN_SEQ) \
-		--character $(SUBJECT)/character --out $(SUBJECT)/models/animate
+		$(foreach m,$(ANIMATE_TRAIN_MOTIONS),--motion $(SUBJECT)/$(m)/$(ANIMATE_TRAIN_SEQ)) \
+		--pointcloud $(SUBJECT)/pointcloud/$(ANIMATE_TRAIN_SEQ) --character $(SUBJECT)/character \
+		--out $(SUBJECT)/models/animate
 
 $(ANIMATE_STUDENT): $(ANIMATE_MODEL) $(SUBJECT)/motion_mocap/$(ANIMATE_STUDENT_SEQ)/manifest.json
 	$(EGO) $(EGOFLAGS) train animate --no-depth --init $(SUBJECT)/models/animate --capture $(SUBJECT)/capture \

@@ -153,7 +153,9 @@ STAGE_COMMANDS = (
             "terms).",
             "egorelight_cli.stages.animate_commands:train_command", model_out(),
             inputs=(capture("Capture (its recon/ is the target)."),
-                    Input("--motion", "motion", "Motion of that sequence.", ("motion",), (".npz",), required=True),
+                    Input("--motion", "motion", "Motion of that sequence; repeatable (e.g. the mocap and the "
+                          "headset's own estimate: one training sample per frame and motion).", ("motion",), (".npz",),
+                          required=True, multiple=True),
                     Input("--pointcloud", "pointcloud", "Pointcloud of that sequence (egodepth); not needed with "
                           "--no-depth.", ("pointcloud",)),
                     character("Character artifact, .npz, .character or 'default'."),

@@ -210,7 +210,7 @@ def previous_rows(frame_ids: np.ndarray) -> np.ndarray:
 # ------------------------------------------------------------------------------- training
 @dataclass
 class TrainingData:
-    """Precomputed training samples (one per frame with a reconstruction).
+    """Precomputed training samples (one per frame with a reconstruction and motion).
 
     Attributes:
         inputs: (S,22,R,R) UV inputs.
@@ -225,6 +225,15 @@ class TrainingData:
     targets: list
     trees: list
     frame_ids: np.ndarray
+
+    @classmethod
+    def concatenate(cls, parts: list["TrainingData"]) -> "TrainingData":
+        """The samples of several sets in one (e.g. the same frames under two motions)."""
+        if len(parts) == 1:
+            return parts[0]
+        return cls(torch.cat([p.inputs for p in parts]), torch.cat([p.theta for p in parts]),
+                   [t for p in parts for t in p.targets], [t for p in parts for t in p.trees],
+                   np.concatenate([p.frame_ids for p in parts]))
 
 
 def reconstruction_target(vertices: np.ndarray, faces: np.ndarray, count: int,

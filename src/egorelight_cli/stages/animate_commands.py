@@ -2,8 +2,12 @@
 :mod:`egorelight_cli.stages.animate`, write artifacts.
 
 ``train animate`` reads a capture sequence's multi-view reconstructions (``recon/<frame>.ply``,
-the training target), a motion artifact of that sequence and, unless ``--no-depth``, its
-pointcloud artifact; it writes a model artifact (``model.pt``, ``curve.json``, ``curve.png``).
+the training target), one or more motion artifacts of that sequence and, unless ``--no-depth``,
+its pointcloud artifact; it writes a model artifact (``model.pt``, ``curve.json``, ``curve.png``).
+Each ``--motion`` adds one training sample per frame (same reconstruction, same point cloud):
+giving the studio's mocap *and* the motion the headset pipeline estimated for the same frames
+teaches the network what the depth encoding looks like when the motion is off, which is what it
+sees at run time (the mocap alone gives it almost nothing to correct).
 ``--init MODEL`` starts from a trained model (the paper's depth-agnostic student: ``--no-depth
 --init MODEL --sequence relight_train``, fine-tuned on the flat-lit frames).
 
@@ -24,7 +28,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 
@@ -62,9 +66,10 @@ def _load_motion(path: Path, character: Character) -> tuple[Motion, Artifact | N
     return motion, artifact
 
 
-def _load_clouds(path: Path | None, motion: Motion, no_depth: bool) -> tuple[list | None, Artifact | None, int]:
-    """Per motion frame ``(points, normals)`` (None where the cloud lacks the frame), the artifact,
-    and the number of motion frames with a cloud; ``(None, None, 0)`` without depth."""
+def _load_clouds(path: Path | None, motions: Sequence[Motion], no_depth: bool) -> tuple[list | None, Artifact | None, int]:
+    """Per motion, per motion frame ``(points, normals)`` (None where the cloud lacks the frame),
+    the artifact, and the number of motion frames with a cloud (all motions); ``(None, None, 0)``
+    without depth."""
     from egorelight_cli.io.pointcloud import load_pointcloud
 
     if no_depth:
@@ -75,12 +80,13 @@ def _load_clouds(path: Path | None, motion: Motion, no_depth: bool) -> tuple[lis
         raise EgorelightError("a point cloud is required (--pointcloud), or run with --no-depth")
     cloud, artifact = load_pointcloud(path)
     have = set(int(f) for f in cloud.frame_ids)
-    clouds = [cloud.frame(int(f)) if int(f) in have else None for f in motion.frame_ids]
-    count = sum(c is not None for c in clouds)
-    if count == 0:
-        raise EgorelightError(f"point cloud frames {cloud.frame_ids.min()}..{cloud.frame_ids.max()} share no frame "
-                              f"with the motion ({motion.frame_ids.min()}..{motion.frame_ids.max()})", path)
-    return clouds, artifact, count
+    clouds = []
+    for motion in motions:
+        clouds.append([cloud.frame(int(f)) if int(f) in have else None for f in motion.frame_ids])
+        if not any(c is not None for c in clouds[-1]):
+            raise EgorelightError(f"point cloud frames {cloud.frame_ids.min()}..{cloud.frame_ids.max()} share no frame "
+                                  f"with the motion ({motion.frame_ids.min()}..{motion.frame_ids.max()})", path)
+    return clouds, artifact, sum(c is not None for per_motion in clouds for c in per_motion)
 
 
 def _motion_and_cloud_artifacts(motion_path: Path, pointcloud_path: Path | None,
@@ -133,32 +139,40 @@ class AnimateCommands:
         return self.run.compute_device()
 
     # ------------------------------------------------------------------------------ train
-    def train(self, capture_path: Path, sequence: str, motion_path: Path, pointcloud_path: Path | None,
+    def train(self, capture_path: Path, sequence: str, motion_paths: Sequence[Path], pointcloud_path: Path | None,
               character_spec: str, init_path: Path | None, no_depth: bool, out: Path, resume: bool = False) -> Path:
         import torch
 
         from egorelight_cli.nn.training import Checkpoint, checkpoint_beside
         from egorelight_cli.stages.animate import (ANIMATE_MODEL_TYPE, AnimationModel, DepthSettings, NetSettings,
-                                                   TrainSettings, build_training_data, evaluate_chamfer,
+                                                   TrainSettings, TrainingData, build_training_data, evaluate_chamfer,
                                                    train_animation_model)
 
         character, character_artifact = load_character(character_spec)
         capture, capture_artifact = open_capture(capture_path)
         seq = capture.sequence(sequence)
         seq.require_stream("recon")
-        motion, motion_artifact = _load_motion(motion_path, character)
-        clouds, cloud_artifact, cloud_frames = _load_clouds(pointcloud_path, motion, no_depth)
+        if not motion_paths:
+            raise EgorelightError("train animate needs at least one --motion")
+        motions = [_load_motion(path, character)[0] for path in motion_paths]
+        clouds, _, cloud_frames = _load_clouds(pointcloud_path, motions, no_depth)
+        clouds = clouds or [None] * len(motions)
         cfg = self.run.config()
-        frames = np.intersect1d(motion.frame_ids, seq.content_frame_ids)
+        frames = np.intersect1d(np.concatenate([m.frame_ids for m in motions]), seq.content_frame_ids)
         if bool(cfg["train"]["flat_lit_only"]):
             frames = seq.flat_lit(frames)
         recon = read_reconstructions(seq, frames)
         if not recon:
-            raise EgorelightError(f"no frame of the motion ({motion.frame_ids.min()}..{motion.frame_ids.max()}) has a "
-                                  f"flat-lit multi-view reconstruction in sequence {sequence!r}", seq.root / "recon")
-        inputs = [a for a in (capture_artifact, character_artifact, motion_artifact, cloud_artifact) if a is not None]
-        sources = character_sources(character_spec, character_artifact) + [seq.recon_path(f) for f in sorted(recon)]
-        sources += _motion_and_cloud_artifacts(motion_path, pointcloud_path, no_depth)[2]
+            span = ", ".join(f"{m.frame_ids.min()}..{m.frame_ids.max()}" for m in motions)
+            raise EgorelightError(f"no frame of the motion ({span}) has a flat-lit multi-view reconstruction in "
+                                  f"sequence {sequence!r}", seq.root / "recon")
+        inputs, sources = [capture_artifact, character_artifact], character_sources(character_spec, character_artifact)
+        for path in motion_paths:
+            motion_artifact, cloud_artifact, lone = _motion_and_cloud_artifacts(path, pointcloud_path, no_depth)
+            inputs += [motion_artifact, cloud_artifact]
+            sources += lone
+        inputs = list({a.digest: a for a in inputs if a is not None}.values())
+        sources = list(dict.fromkeys(sources + [seq.recon_path(f) for f in sorted(recon)]))
         init = None
         if init_path is not None:
             init, init_artifact, _ = load_animate_model(init_path, character, self._device())
@@ -175,18 +189,22 @@ class AnimateCommands:
             torch.manual_seed(settings.seed)
             model = init or AnimationModel(character, NetSettings.from_config(cfg), DepthSettings.from_config(cfg),
                                            device=device)
-            data = build_training_data(model, motion.theta, motion.frame_ids, clouds, recon, settings)
+            data = TrainingData.concatenate([build_training_data(model, motion.theta, motion.frame_ids, per_frame, recon,
+                                                                 settings)
+                                             for motion, per_frame in zip(motions, clouds)])
             before = evaluate_chamfer(model, data, settings, no_depth=no_depth)
             curve = train_animation_model(model, data, settings, no_depth=no_depth,
                                           checkpoint=Checkpoint(checkpoint, writer.cache_key, resume))
             after = evaluate_chamfer(model, data, settings, no_depth=no_depth)
             extra = {"eps_d": model.depth.eps_d, "eps_n": model.depth.eps_n, "num_vertices": character.num_vertices,
                      "num_nodes": character.graph.num_nodes, "no_depth": bool(no_depth), "sequence": sequence,
-                     "frames": [int(f) for f in data.frame_ids], "init": str(init_path) if init_path else None}
+                     "frames": [int(f) for f in data.frame_ids], "motions": [str(p) for p in motion_paths],
+                     "init": str(init_path) if init_path else None}
             write_model(writer.workdir, ModelPayload(ANIMATE_MODEL_TYPE, model.settings.to_dict(),
                                                      model.net.state_dict(), extra, curve),
                         curve_title="train animate: loss terms")
-            writer.metrics.update({"training_frames": int(len(data.frame_ids)), "steps": settings.steps,
+            writer.metrics.update({"training_frames": int(len(data.frame_ids)), "training_motions": len(motions),
+                                   "steps": settings.steps,
                                    "no_depth": bool(no_depth), "frames_with_cloud": cloud_frames,
                                    "train_chamfer_cm_before": before, "train_chamfer_cm_after": after,
                                    "final_loss": curve[-1]["loss"] if curve else None})
@@ -217,7 +235,8 @@ class AnimateCommands:
         from egorelight_cli.stages.animate import previous_rows
 
         motion, _ = _load_motion(motion_path, character)
-        clouds, _, cloud_frames = _load_clouds(pointcloud_path, motion, no_depth)
+        clouds, _, cloud_frames = _load_clouds(pointcloud_path, [motion], no_depth)
+        clouds = None if clouds is None else clouds[0]
         model, _, _ = load_animate_model(model_path, character, self._device())
 
         def write(writer: ArtifactWriter, cfg: Config) -> None:
@@ -392,7 +411,7 @@ def _write_preview(writer: ArtifactWriter, character: Character, meshes: MeshSeq
 
 
 # ------------------------------------------------------------- handlers (egorelight_cli.declarations)
-def train_command(run: StageRun, capture: Path, motion: Path, pointcloud: Path | None, character: str,
+def train_command(run: StageRun, capture: Path, motion: tuple[Path, ...], pointcloud: Path | None, character: str,
                   init: Path | None, sequence: str, no_depth: bool, resume: bool, out: Path) -> Path:
     return AnimateCommands(run).train(capture, sequence, motion, pointcloud, character, init, no_depth, out, resume)
 
