@@ -273,3 +273,48 @@ def test_depth_skip_adds_the_sampled_xi_channels_to_the_offsets():
     torch.testing.assert_close(off, torch.tensor([0.015, -0.03, 0.06]).expand(1, 9, 3))
     with pytest.raises(ValueError):
         AnimationNet(6, skip_channels=(0, 2))
+
+
+def test_observed_cell_mean_averages_only_the_observed_texels():
+    from egorelight_cli.nn.animation_net import observed_cell_mean
+
+    values = torch.arange(16.0).reshape(1, 1, 4, 4)
+    mask = torch.zeros(1, 1, 4, 4)
+    mask[0, 0, 0, 0] = mask[0, 0, 1, 1] = 1.0  # top-left cell: texels 0 and 5
+    mask[0, 0, 2:, 2:] = 1.0  # bottom-right cell: texels 10, 11, 14, 15
+    mean = observed_cell_mean(values * mask, mask, 2)  # xi is zero where unobserved, as in the inputs
+    torch.testing.assert_close(mean, torch.tensor([[[[2.5, 0.0], [0.0, 12.5]]]]))
+
+
+def test_node_skip_moves_the_nodes_by_the_observed_xi_around_them():
+    from egorelight_cli.nn.animation_net import AnimationNet
+
+    net = AnimationNet(7, base_channels=8, hidden=8, node_level_downsample=2, skip_channels=(2, 5),
+                       node_skip_mask_channel=5)
+    x = torch.zeros(1, 7, 32, 32)
+    x[:, 5, :16] = 1.0  # the rows of v > 0.5 are observed ...
+    x[:, 2:5, :16] = torch.tensor([0.5, -1.0, 2.0])[:, None, None]  # ... with this xi
+    nodes = torch.tensor([[0.3, 0.8], [0.7, 0.9], [0.5, 0.2]])  # two in the observed half, one not
+    _, beta, _ = net(x, nodes, torch.rand(9, 2))
+    assert torch.all(beta == 0)  # both gains start at zero
+    with torch.no_grad():
+        net.node_skip_gain.fill_(0.02)
+    _, beta, off = net(x, nodes, torch.rand(9, 2))
+    torch.testing.assert_close(beta[0, :2], torch.tensor([0.01, -0.02, 0.04]).expand(2, 3))
+    torch.testing.assert_close(beta[0, 2], torch.zeros(3))
+    assert torch.all(off == 0)  # the vertex skip has its own gain
+    with pytest.raises(ValueError):
+        AnimationNet(7, node_skip_mask_channel=5)  # the node skip needs the xi channels
+
+
+def test_a_model_written_before_the_node_skip_loads_without_one():
+    from egorelight_cli.stages.animate import NetSettings
+
+    current = NetSettings(uv_resolution=32, base_channels=8, levels=3, node_level_downsample=2, hidden=8,
+                          rotation_scale=0.1, translation_scale=0.02, offset_scale=0.01, depth_skip=True,
+                          depth_node_skip=True)
+    old_architecture = {k: v for k, v in current.to_dict().items() if k != "depth_node_skip"}
+    old = NetSettings.from_architecture(old_architecture)
+    assert old.depth_node_skip is False and NetSettings.from_architecture(current.to_dict()) == current
+    old_weights = {k: v for k, v in current.build_net().state_dict().items() if k != "node_skip_gain"}
+    old.build_net().load_state_dict(old_weights)  # strict: the same keys

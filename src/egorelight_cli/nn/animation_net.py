@@ -14,6 +14,13 @@ also sampled at every vertex and added to the offsets with one learned gain (sta
 ``o += gain * xi_uv(v)``. Since ``xi`` is the canonical-space gradient of the point-to-surface
 distance, this gives the network a direct, pose-independent "step towards the observed
 surface" that it refines, instead of having to rediscover the identity map from few frames.
+
+Optional *node skip* (ours, ``node_skip``): the same for the embedded graph. The ``xi`` channels
+are averaged over the observed texels of each node-level cell (a box of ``2**node_level_downsample``
+texels, divided by the mask's average there) and sampled at every node; with a second learned gain
+(starting at 0) they are added to the node translations, ``beta += node_gain * mean xi(node)``.
+A node moves with what the depth shows of its neighbourhood, and the graph carries that to the
+vertices the cameras do not see (the vertex skip alone only moves the observed vertices).
 """
 
 from __future__ import annotations
@@ -45,6 +52,8 @@ class AnimationNet(nn.Module):
         rotation_scale, translation_scale, offset_scale: output scales (rad, m, m).
         skip_channels: optional (start, stop) input channels (3 of them) added to the offsets
             with a learned gain (the depth skip).
+        node_skip_mask_channel: with ``skip_channels``, the input channel of the mask of observed
+            texels; the node skip (module docstring) is then on. None: off.
     Shapes:
         forward(x (B,C,H,W), node_uv (N,2), vertex_uv (V,2)) ->
         (alpha (B,N,3) rad, beta (B,N,3) m, offsets (B,V,3) m).
@@ -52,7 +61,8 @@ class AnimationNet(nn.Module):
 
     def __init__(self, in_channels: int, base_channels: int = 32, levels: int = 3, node_level_downsample: int = 2,
                  hidden: int = 64, rotation_scale: float = 0.1, translation_scale: float = 0.02,
-                 offset_scale: float = 0.01, skip_channels: tuple[int, int] | None = None):
+                 offset_scale: float = 0.01, skip_channels: tuple[int, int] | None = None,
+                 node_skip_mask_channel: int | None = None):
         super().__init__()
         if not 0 <= node_level_downsample <= levels:
             raise ValueError(f"node_level_downsample must be in 0..{levels}")
@@ -67,6 +77,13 @@ class AnimationNet(nn.Module):
             if self.skip_channels[1] - self.skip_channels[0] != 3:
                 raise ValueError("skip_channels must select 3 channels")
             self.skip_gain = nn.Parameter(torch.zeros(()))
+        self.node_skip_mask_channel = None
+        if node_skip_mask_channel is not None:
+            if self.skip_channels is None:
+                raise ValueError("the node skip needs skip_channels")
+            self.node_skip_mask_channel = int(node_skip_mask_channel)
+            self.node_skip_cell = 2 ** node_level_downsample
+            self.node_skip_gain = nn.Parameter(torch.zeros(()))
 
     def forward(self, x: torch.Tensor, node_uv: torch.Tensor, vertex_uv: torch.Tensor):
         features = self.unet.decoder_features(x)
@@ -80,7 +97,20 @@ class AnimationNet(nn.Module):
         node_out = self.node_head(node_f)
         rot, trans, off = self.scales
         offsets = off * self.vertex_head(vertex_f)
+        translations = trans * node_out[..., 3:]
         if self.skip_channels is not None:
             start, stop = self.skip_channels
             offsets = offsets + self.skip_gain * sample_feature_map(x[:, start:stop], vertex_uv)
-        return rot * node_out[..., :3], trans * node_out[..., 3:], offsets
+            if self.node_skip_mask_channel is not None:
+                translations = translations + self.node_skip_gain * sample_feature_map(
+                    observed_cell_mean(x[:, start:stop], x[:, self.node_skip_mask_channel:self.node_skip_mask_channel + 1],
+                                       self.node_skip_cell), node_uv)
+        return rot * node_out[..., :3], translations, offsets
+
+
+def observed_cell_mean(values: torch.Tensor, mask: torch.Tensor, cell: int) -> torch.Tensor:
+    """Mean of ``values`` (B,C,H,W) over the texels where ``mask`` (B,1,H,W, 0..1) is set, per
+    ``cell`` x ``cell`` block (0 where a block has none) -> (B,C,H/cell,W/cell)."""
+    weight = torch.nn.functional.avg_pool2d(mask, cell)
+    total = torch.nn.functional.avg_pool2d(values * mask, cell)
+    return torch.where(weight > 0, total / weight.clamp_min(1e-6), torch.zeros_like(total))

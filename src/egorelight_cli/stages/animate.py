@@ -72,16 +72,23 @@ class NetSettings:
     translation_scale: float = _net("net.translation_scale")
     offset_scale: float = _net("net.offset_scale")
     depth_skip: bool = _net("net.depth_skip")
+    depth_node_skip: bool = _net("net.depth_node_skip")
 
     @classmethod
     def from_config(cls, cfg: Config) -> "NetSettings":
         return settings_from_config(cls, cfg)
 
+    @classmethod
+    def from_architecture(cls, architecture: dict) -> "NetSettings":
+        """The settings a model artifact stored (models written before the node skip have none)."""
+        return cls(**{"depth_node_skip": False, **architecture})
+
     def build_net(self) -> AnimationNet:
         """A fresh AnimationNet of this architecture."""
         skip = (XI_CHANNELS.start, XI_CHANNELS.start + 3) if self.depth_skip else None
+        node_skip = XI_CHANNELS.start + 3 if self.depth_skip and self.depth_node_skip else None
         return AnimationNet(IN_CHANNELS, self.base_channels, self.levels, self.node_level_downsample, self.hidden,
-                            self.rotation_scale, self.translation_scale, self.offset_scale, skip)
+                            self.rotation_scale, self.translation_scale, self.offset_scale, skip, node_skip)
 
     def to_dict(self) -> dict:
         return dict(self.__dict__)

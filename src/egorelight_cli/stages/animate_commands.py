@@ -117,7 +117,7 @@ def load_animate_model(path: Path, character: Character, device) -> tuple[Animat
                               f"{extra.get('num_nodes')} graph nodes, this one has {character.num_vertices} and "
                               f"{character.graph.num_nodes}", path)
     try:
-        net_settings = NetSettings(**payload.architecture)
+        net_settings = NetSettings.from_architecture(payload.architecture)
     except TypeError as exc:
         raise EgorelightError(f"animate model architecture is not understood ({exc})", path) from None
     depth = DepthSettings(float(extra["eps_d"]), float(extra["eps_n"]))
