@@ -12,7 +12,8 @@ Per frame t the network input is a UV map (``uv_resolution`` square) with channe
 * ``xi / eps_d`` (3) and the ``xi`` mask (1): the depth encoding (zero without depth).
 
 With ``net.depth_skip`` (ours) the sampled ``xi`` channels are also added to the offsets with
-a learned gain (see :mod:`egorelight_cli.nn.animation_net`).
+a learned gain, and with ``net.depth_node_skip`` (ours) their mean over the observed texels
+around each graph node to its translation with another (see :mod:`egorelight_cli.nn.animation_net`).
 
 Training (``train animate``) minimises the supplement's loss against the multi-view
 reconstruction of each frame::

@@ -4,10 +4,11 @@
 ``train animate`` reads a capture sequence's multi-view reconstructions (``recon/<frame>.ply``,
 the training target), one or more motion artifacts of that sequence and, unless ``--no-depth``,
 its pointcloud artifact; it writes a model artifact (``model.pt``, ``curve.json``, ``curve.png``).
-Each ``--motion`` adds one training sample per frame (same reconstruction, same point cloud):
-giving the studio's mocap *and* the motion the headset pipeline estimated for the same frames
-teaches the network what the depth encoding looks like when the motion is off, which is what it
-sees at run time (the mocap alone gives it almost nothing to correct).
+Each ``--motion`` adds one training sample per frame (same reconstruction, same point cloud).
+The demo trains on the motion the headset pipeline estimated for the training frames: under it
+the depth encoding shows the network corrections like the ones it must make at run time (under
+the studio's mocap there is almost nothing to correct, and the network learned to ignore the
+depth). Several motions, e.g. draws of a motion error, train on all of them.
 ``--init MODEL`` starts from a trained model (the paper's depth-agnostic student: ``--no-depth
 --init MODEL --sequence relight_train``, fine-tuned on the flat-lit frames).
 
