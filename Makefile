@@ -24,7 +24,8 @@ STAMP   := $(VENV)/.installed-stamp
 # make puts -jN into MAKEFLAGS only there.
 MAKE_JOBS = $(patsubst -j%,%,$(filter -j%,$(MAKEFLAGS)))
 THREADS  ?= $(if $(filter -j%,$(MAKEFLAGS)),$(shell expr $$(nproc) / $(or $(MAKE_JOBS),$$(nproc)) \| 1))
-EGOFLAGS ?= --preset $(PRESET) $(if $(THREADS),--threads $(THREADS))
+STAGE_THREADS = $(THREADS)
+EGOFLAGS ?= --preset $(PRESET) $(if $(STAGE_THREADS),--threads $(STAGE_THREADS))
 
 .PHONY: all venv demo demo-results test bench readme clean distclean subject relight-rows
 
@@ -55,6 +56,10 @@ CHARACTER := $(SUBJECT)/character/manifest.json
 PREVIEWS  := $(SUBJECT)/previews
 
 # simulated lightstage + HMD capture with ground truth (a real capture converted to DESIGN Sec. 5 fits here)
+# synth is the DAG's root and runs alone: under make -jN (local scheduler, THREADS not given) it takes
+# every core, its sequences rendering side by side, instead of its 1/N share (the cpu demo's synth
+# ran 38 min on one of two cores, its longest sequence ego_bulk alone ~20 min)
+$(CAPTURE): STAGE_THREADS = $(if $(and $(filter local,$(SCHEDULER)),$(filter file,$(origin THREADS)),$(MAKE_JOBS)),$(shell nproc),$(THREADS))
 $(CAPTURE): $(STAMP)
 	$(EGO) $(EGOFLAGS) synth --out $(SUBJECT)/capture
 

@@ -69,3 +69,34 @@ def test_slurm_mode_runs_every_stage_command_through_srun(tmp_path):
     assert commands and all(line.startswith("srun --ntasks=1 --cpus-per-task=8 --job-name=egorelight ")
                             for line in commands)
     assert sum("--shard" in line for line in commands) == 2
+
+
+def test_synth_runs_alone_and_takes_every_core_under_make_j(tmp_path):
+    import os
+
+    def synth_line(*args):
+        return next(line for line in _dry_run(tmp_path, *args, f"{tmp_path}/character/manifest.json").splitlines()
+                    if " synth " in line)
+
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    nproc = subprocess.run(["nproc"], capture_output=True, text=True).stdout.strip() or str(cores)
+    assert f"--threads {nproc} synth" in synth_line("-j2")
+    assert "--threads 3 synth" in synth_line("-j2", "THREADS=3")  # a thread count given is kept
+    assert "--threads" not in synth_line()  # no -j: every core it may anyway
+    # the stages after it keep their share
+    assert "--threads 1 character" in _dry_run(tmp_path, "-j2", "THREADS=1", f"{tmp_path}/character/manifest.json")
+
+
+def _commands(out: str) -> list[str]:
+    """``make -n`` output as one line per command (continuation lines joined, blanks squeezed)."""
+    return [" ".join(line.split()) for line in out.replace("\\\n", " ").splitlines()]
+
+
+def test_animate_trains_on_the_motion_the_headset_pipeline_estimates(tmp_path):
+    out = _commands(_dry_run(tmp_path, f"{tmp_path}/models/animate/manifest.json"))
+    train = next(line for line in out if " train animate " in line)
+    assert f"--motion {tmp_path}/motion/ego_train " in train and "motion_mocap" not in train
+    assert any(f"ik --in {tmp_path}/keypoints/ego_train " in line for line in out)  # egopose -> ik on it
+    both = _dry_run(tmp_path, "ANIMATE_TRAIN_MOTIONS=motion motion_mocap", f"{tmp_path}/models/animate/manifest.json")
+    train = next(line for line in _commands(both) if " train animate " in line)
+    assert f"--motion {tmp_path}/motion/ego_train --motion {tmp_path}/motion_mocap/ego_train" in train
