@@ -104,9 +104,11 @@ def test_trained_under_a_motion_that_is_off_the_depth_corrects_held_out_frames(a
                 "--model", model, "--capture", animate_inputs["capture"], "--out", out)
     assert code == 0
     m = _metrics(out)
+    # measured full / no depth / skinning: 1.67 / 1.97 / 3.14 cm (full body), 2.42 / 2.75 / 3.57 (ego-visible);
+    # without the node skip the ego-visible pair was 2.71 / 2.73
     for region in ("", "ego_visible_"):
         full, blind, skinning = (m[f"{v}_p2s_{region}pred_to_true_cm"] for v in ("full", "no_depth", "skinning"))
-        assert full < 0.97 * blind and blind < 0.9 * skinning, (region, full, blind, skinning)  # 0.85, 0.63 / 0.88, 0.77
+        assert full < 0.97 * blind and blind < 0.9 * skinning, (region, full, blind, skinning)
 
 
 @pytest.fixture(scope="module")

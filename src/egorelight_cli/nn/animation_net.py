@@ -102,9 +102,9 @@ class AnimationNet(nn.Module):
             start, stop = self.skip_channels
             offsets = offsets + self.skip_gain * sample_feature_map(x[:, start:stop], vertex_uv)
             if self.node_skip_mask_channel is not None:
-                translations = translations + self.node_skip_gain * sample_feature_map(
-                    observed_cell_mean(x[:, start:stop], x[:, self.node_skip_mask_channel:self.node_skip_mask_channel + 1],
-                                       self.node_skip_cell), node_uv)
+                observed = x[:, self.node_skip_mask_channel:self.node_skip_mask_channel + 1]
+                around_node = observed_cell_mean(x[:, start:stop], observed, self.node_skip_cell)
+                translations = translations + self.node_skip_gain * sample_feature_map(around_node, node_uv)
         return rot * node_out[..., :3], translations, offsets
 
 

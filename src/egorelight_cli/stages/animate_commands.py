@@ -67,7 +67,8 @@ def _load_motion(path: Path, character: Character) -> tuple[Motion, Artifact | N
     return motion, artifact
 
 
-def _load_clouds(path: Path | None, motions: Sequence[Motion], no_depth: bool) -> tuple[list | None, Artifact | None, int]:
+def _load_clouds(path: Path | None, motions: Sequence[Motion],
+                 no_depth: bool) -> tuple[list | None, Artifact | None, int]:
     """Per motion, per motion frame ``(points, normals)`` (None where the cloud lacks the frame),
     the artifact, and the number of motion frames with a cloud (all motions); ``(None, None, 0)``
     without depth."""
@@ -190,9 +191,9 @@ class AnimateCommands:
             torch.manual_seed(settings.seed)
             model = init or AnimationModel(character, NetSettings.from_config(cfg), DepthSettings.from_config(cfg),
                                            device=device)
-            data = TrainingData.concatenate([build_training_data(model, motion.theta, motion.frame_ids, per_frame, recon,
-                                                                 settings)
-                                             for motion, per_frame in zip(motions, clouds)])
+            data = TrainingData.concatenate([
+                build_training_data(model, motion.theta, motion.frame_ids, per_frame, recon, settings)
+                for motion, per_frame in zip(motions, clouds)])
             before = evaluate_chamfer(model, data, settings, no_depth=no_depth)
             curve = train_animation_model(model, data, settings, no_depth=no_depth,
                                           checkpoint=Checkpoint(checkpoint, writer.cache_key, resume))
