@@ -91,17 +91,17 @@ def _load_clouds(path: Path | None, motions: Sequence[Motion],
     return clouds, artifact, sum(c is not None for per_motion in clouds for c in per_motion)
 
 
-def _motion_and_cloud_artifacts(motion_path: Path, pointcloud_path: Path | None,
-                                no_depth: bool) -> tuple[Artifact | None, Artifact | None, list[Path]]:
-    """(motion artifact, point cloud artifact, the lone npz files among the two), read from the
-    manifests only (the arrays load past the cache check); no cloud with ``--no-depth``."""
-    motion_artifact = resolve_payload(motion_path, "motion", MOTION_PAYLOAD, "motion")[1]
-    lone = [] if motion_artifact is not None else [Path(motion_path)]
+def _motion_and_cloud_artifacts(motion_paths: Sequence[Path], pointcloud_path: Path | None,
+                                no_depth: bool) -> tuple[list[Artifact | None], Artifact | None, list[Path]]:
+    """(each motion's artifact, the point cloud's artifact, the lone npz files among them), read
+    from the manifests only (the arrays load past the cache check); no cloud with ``--no-depth``."""
+    motion_artifacts = [resolve_payload(path, "motion", MOTION_PAYLOAD, "motion")[1] for path in motion_paths]
+    lone = [Path(path) for path, artifact in zip(motion_paths, motion_artifacts) if artifact is None]
     cloud_artifact = None
     if pointcloud_path is not None and not no_depth:
         cloud_artifact = resolve_payload(pointcloud_path, "pointcloud", POINTCLOUD_PAYLOAD, "pointcloud")[1]
         lone += [] if cloud_artifact is not None else [Path(pointcloud_path)]
-    return motion_artifact, cloud_artifact, lone
+    return motion_artifacts, cloud_artifact, lone
 
 
 def load_animate_model(path: Path, character: Character, device) -> tuple[AnimationModel, Artifact, dict]:
@@ -168,12 +168,10 @@ class AnimateCommands:
             span = ", ".join(f"{m.frame_ids.min()}..{m.frame_ids.max()}" for m in motions)
             raise EgorelightError(f"no frame of the motion ({span}) has a flat-lit multi-view reconstruction in "
                                   f"sequence {sequence!r}", seq.root / "recon")
-        inputs, sources = [capture_artifact, character_artifact], character_sources(character_spec, character_artifact)
-        for path in motion_paths:
-            motion_artifact, cloud_artifact, lone = _motion_and_cloud_artifacts(path, pointcloud_path, no_depth)
-            inputs += [motion_artifact, cloud_artifact]
-            sources += lone
-        inputs = list({a.digest: a for a in inputs if a is not None}.values())
+        motion_artifacts, cloud_artifact, lone = _motion_and_cloud_artifacts(motion_paths, pointcloud_path, no_depth)
+        inputs = [capture_artifact, character_artifact, *motion_artifacts, cloud_artifact]
+        inputs = list({a.digest: a for a in inputs if a is not None}.values())  # a motion given twice counts once
+        sources = character_sources(character_spec, character_artifact) + lone
         sources = list(dict.fromkeys(sources + [seq.recon_path(f) for f in sorted(recon)]))
         init = None
         if init_path is not None:
@@ -221,7 +219,7 @@ class AnimateCommands:
                 capture_path: Path | None, sequence: str, calibration_path: Path | None, no_depth: bool,
                 export: str | None, out: Path) -> Path:
         character, character_artifact = load_character(character_spec)
-        motion_artifact, cloud_artifact, lone = _motion_and_cloud_artifacts(motion_path, pointcloud_path, no_depth)
+        (motion_artifact,), cloud_artifact, lone = _motion_and_cloud_artifacts([motion_path], pointcloud_path, no_depth)
         model_artifact = open_artifact(model_path, kind="model")
         capture, capture_artifact = open_capture(capture_path, [sequence]) if capture_path is not None else (None, None)
         calibration = calibration_artifact = None
