@@ -201,7 +201,7 @@ def test_relight_frame_shards_merge_into_the_single_run(tiny_capture, skinned_me
         assert_shards_merge_into(tmp_path / "whole", parts, tmp_path / f"merged{count}")
 
 
-def test_relight_loss_l1_is_a_mean_over_the_subject_whatever_the_framing():
+def test_relight_loss_terms_are_means_over_the_subject_whatever_the_framing():
     import torch
 
     from egorelight_cli.render.gaussians import GaussianRender
@@ -212,15 +212,19 @@ def test_relight_loss_l1_is_a_mean_over_the_subject_whatever_the_framing():
     mask = torch.zeros(30, 30, dtype=torch.bool)
     mask[8:22, 10:20] = True
 
-    def loss(pad: int) -> dict:
+    def loss(pad: int, weights: dict | None = None) -> dict:
         grow = lambda x: torch.nn.functional.pad(x.permute(2, 0, 1), (pad,) * 4).permute(1, 2, 0)
         render = GaussianRender(colour=grow(colour), alpha=grow(torch.ones(30, 30, 1))[..., 0],
                                 depth=grow(torch.ones(30, 30, 1))[..., 0], passes={"diffuse": grow(colour * 0.5)})
         return relight_loss(render, grow(target), grow(mask[..., None].double())[..., 0] > 0.5, torch.tensor(0.0),
-                            "linear")
+                            "linear", weights)
 
     near, far = loss(0), loss(40)  # the same subject framed in a 30 or a 110 pixel image
     expected = float((colour - target).abs()[mask].mean())
     assert float(near["l1"]) == pytest.approx(expected) and float(far["l1"]) == pytest.approx(expected)
     assert float(far["diffuse"]) == pytest.approx(float((colour * 0.5 - target).abs()[mask].mean()))
     assert float(near["ssim"]) == pytest.approx(float(far["ssim"]))
+    squared = float((colour - target).square()[mask].mean())  # the MSE a PSNR is computed from
+    assert float(near["l2"]) == pytest.approx(squared) and float(far["l2"]) == pytest.approx(squared)
+    weights = {"l1": 2.0, "ssim": 3.0, "reg": 0.0, "diffuse": 0.5, "l2": 7.0}
+    assert float(loss(0, weights)["loss"]) == pytest.approx(sum(w * float(near[k]) for k, w in weights.items()))

@@ -421,7 +421,7 @@ class RelightCommands:
                                    "loss_first": curve[0]["loss"], "loss_last": curve[-1]["loss"],
                                    "id_mrf": "not used: needs VGG weights (cannot be downloaded); loss is "
                                              f"{w['l1']:g} L1 + {w['ssim']:g} (1 - SSIM) + {w['reg']:g} L_reg + "
-                                             f"{w['diffuse']:g} L1(diffuse), in {t.loss_space} space"})
+                                             f"{w['diffuse']:g} L1(diffuse) + {w['l2']:g} L2, in {t.loss_space} space"})
 
         result = self.run.produce(out, "model", write, inputs=inputs, source_files=sources)
         checkpoint.unlink(missing_ok=True)
