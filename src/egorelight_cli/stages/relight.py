@@ -20,8 +20,9 @@ carry over to unseen lighting (cpu demo, ``stages/relight.yaml``).
 The Gaussians are rendered (``render/gaussians.py``) with ``c_diff + c_spec`` and, as a pass,
 ``c_diff`` alone. Loss: ``w_l1 L1 + w_ssim (1 - SSIM) + w_reg L_reg + w_diffuse L1(diffuse pass)
 + w_l2 L2``, the paper's weights 1 / 10 / 1 / 1 and no L2 (ours: the squared error PSNR scores)
-(``LOSS_WEIGHTS``) or the config's (``train.weights``, ``train.loss_space``); the paper's ``80 ID-MRF`` needs VGG weights, which cannot be downloaded
-here, so it is left out and the manifest says so. After half the steps, with probability 0.4, the light (``chi`` and the
+(``LOSS_WEIGHTS``) or the config's (``train.weights``, ``train.loss_space``); the paper's
+``80 ID-MRF`` needs VGG weights, which cannot be downloaded here, so it is left out and the
+manifest says so. After half the steps, with probability 0.4, the light (``chi`` and the
 rays' intensities) and the target image are scaled by one factor from U[0, 1] (the paper's
 intensity augmentation, exact because light transport is linear).
 """
