@@ -55,7 +55,8 @@ from egorelight_cli.structures.gaussians import GaussianSet
 
 MODEL_STAGE = "relight"
 LN2 = float(np.log(2.0))  # softplus(0): the diffuse gain of an untrained DiffuseNet is 1
-LOSS_WEIGHTS = {"l1": 1.0, "ssim": 10.0, "reg": 1.0, "diffuse": 1.0, "l2": 0.0}  # paper (ID-MRF x80: no VGG weights); l2: ours
+#: the paper's weights (its ID-MRF x80 needs VGG weights: left out); ``l2`` is ours, off
+LOSS_WEIGHTS = {"l1": 1.0, "ssim": 10.0, "reg": 1.0, "diffuse": 1.0, "l2": 0.0}
 
 
 #: what SpecularNet's output is: ``none`` the specular colour itself (the paper); ``irradiance`` a
@@ -257,7 +258,7 @@ def relight_loss(render: GaussianRender, target: torch.Tensor, mask: torch.Tenso
     image, diffuse, target = image * weight, diffuse * weight, target * weight
     rows, cols = torch.nonzero(mask, as_tuple=True)
     box = (slice(max(int(rows.min()) - 8, 0), int(rows.max()) + 9), slice(max(int(cols.min()) - 8, 0), int(cols.max()) + 9))
-    subject_values = 3.0 * weight.sum()  # L1 is a mean over the subject's pixels, whatever the framing
+    subject_values = 3.0 * weight.sum()  # L1 and L2 are means over the subject's pixels, whatever the framing
     terms = {"l1": (image - target).abs().sum() / subject_values, "ssim": 1.0 - ssim(image[box], target[box]),
              "reg": regulariser, "diffuse": (diffuse - target).abs().sum() / subject_values,
              "l2": (image - target).square().sum() / subject_values}

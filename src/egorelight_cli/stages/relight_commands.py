@@ -416,12 +416,12 @@ class RelightCommands:
                      "train_frames": frames[:-held].tolist(), "val_frames": frames[-held:].tolist()}
             write_model(writer.workdir, ModelPayload(rl.MODEL_STAGE, model.architecture(), model.state_dict(), extra,
                                                      curve), curve_title="relight training loss")
-            w = {k: float(t.weights[k]) for k in rl.LOSS_WEIGHTS}
+            loss_terms = (f"{weights['l1']:g} L1 + {weights['ssim']:g} (1 - SSIM) + {weights['reg']:g} L_reg + "
+                          f"{weights['diffuse']:g} L1(diffuse) + {weights['l2']:g} L2")
             writer.metrics.update({"training_views": len(train_views), "validation_views": len(val_views),
                                    "loss_first": curve[0]["loss"], "loss_last": curve[-1]["loss"],
                                    "id_mrf": "not used: needs VGG weights (cannot be downloaded); loss is "
-                                             f"{w['l1']:g} L1 + {w['ssim']:g} (1 - SSIM) + {w['reg']:g} L_reg + "
-                                             f"{w['diffuse']:g} L1(diffuse) + {w['l2']:g} L2, in {t.loss_space} space"})
+                                             f"{loss_terms}, in {t.loss_space} space"})
 
         result = self.run.produce(out, "model", write, inputs=inputs, source_files=sources)
         checkpoint.unlink(missing_ok=True)
