@@ -14,7 +14,7 @@ from egorelight_cli.nn.colour_model import RootPolynomialColour
 from egorelight_cli.render import optical_flow as of
 from egorelight_cli.render.lighting import EnvmapPooling
 from egorelight_cli.render.lightstage import LightStage
-from egorelight_cli.stages.envmap_inverse import fit_colour_model, part_l1, range_regulariser
+from egorelight_cli.stages.envmap_inverse import EgoView, InverseSettings, fit_colour_model, observe, part_l1, range_regulariser
 from tiny_models import cli_exit_code as _main, tiny_geolift_uvmaps  # the CLI in-process, shared setup
 
 
@@ -58,6 +58,27 @@ def test_part_l1_balances_parts_and_regulariser_bounds_the_range():
     assert float(range_regulariser(torch.full((2, 4, 3), 0.5), 1.0)) < 1e-9
     assert float(range_regulariser(torch.full((2, 4, 3), 3.0), 1.0)) == pytest.approx(2.0, rel=1e-6)
     assert float(range_regulariser(torch.full((2, 4, 3), -0.5), 1.0)) == pytest.approx(0.5, rel=1e-6)
+
+
+def test_observed_masks_leave_out_render_pixels_nearer_than_min_depth():
+    """A view whose render has a splat at the lens (depth 2 cm) over its left half: with
+    min_depth_m = 0.1 those pixels leave every part mask and count in near_fraction; with 0 they stay."""
+    h, w = 16, 16
+    alpha = np.ones((h, w), np.float32)
+    parts = np.zeros((h, w, 5), np.float32)
+    parts[..., 0] = 1.0  # all upper body
+    depth = np.full((h, w), 0.4, np.float32)
+    depth[:, : w // 2] = 0.02
+    ego = np.full((h, w, 3), 0.5, np.float32)
+    unclipped = np.ones((h, w), bool)
+    for min_depth, near_share in ((0.1, 0.5), (0.0, 0.0)):
+        settings = InverseSettings(("down_left",), 1, 1, 1e-2, 1, 1.0, None, "none", None, 0.02, 0.1, 0.3, 0,
+                                   min_depth, 1, ("flat",), ("fitted",))
+        view = EgoView(0, "down_left", None, ego, unclipped)
+        observe(view, ego, alpha, parts, depth, False, True, settings, "none")
+        assert view.near_fraction == pytest.approx(near_share)
+        assert int(view.masks.sum()) == int(h * w * (1 - near_share))
+        assert not bool(view.masks[:, :, : w // 2].any()) if min_depth else bool(view.masks[0].all())
 
 
 def test_dis_flow_warps_a_shifted_image_back_and_flags_occlusions():
@@ -122,6 +143,10 @@ def test_envmap_inverse_rendering_on_the_tiny_capture(tiny_capture, oracle_calib
     for role in ("down_left", "down_right"):
         sync = model["colour_sync"][role]
         assert np.asarray(sync["matrix"]).shape == (3, 3) and sync["pixels"] > 30
+        assert len(sync["near_fraction"]) == len(sync["frames"])
+        truth = m["colour_sync_truth"][role]  # scored against the simulated camera response
+        assert truth["true_gain"] > 0 and np.isfinite(truth["gain_error"]) and truth["matrix_max_abs_error"] >= 0
+    assert 0.0 <= m["near_excluded_fraction"] <= 1.0
     from egorelight_cli.render.envmaps import load_envmap
 
     envmap = load_envmap(out / "envmap.exr")
@@ -149,6 +174,8 @@ def _inpainted(out):
     ("--model", (), "missing --model"),
     (None, ("--set", "inverse.flow.method=farneback"), "optical flow method"),
     (None, ("--set", "inverse.rows=[no_flow]"), "inverse.rows"),
+    (None, ("--set", "inverse.image_pass=specular"), "inverse.image_pass"),
+    (None, ("--set", "inverse.min_depth_m=-1"), "inverse.min_depth_m"),
     (None, ("--set", "inverse.roles=[down_up]"), "down_up"),
     (None, ("--set", "inverse.sync.sequence=wild"), "wild"),
 ])

@@ -216,6 +216,10 @@ def _write_envmap(writer: ArtifactWriter, cfg: Config, capture, calibration, seq
             writer.metrics["relit_views"] = relit["relit_views"]
         writer.metrics.update(rows[row])
         writer.metrics["rows"] = rows
+    if inverse is not None:
+        sync_truth = ev.colour_sync_truth(capture, inverse.sync)
+        if sync_truth is not None:
+            writer.metrics["colour_sync_truth"] = sync_truth
         writer.metrics.update({"truth_envmap": truth.name, "truth_frame_yaw_deg": truth.frame_yaw_deg,
                                "truth_frame_tilt_deg": truth.frame_tilt_deg})
     writer.extra["frame"] = f"the calibrated head poses of sequence {sequence.name}"
@@ -258,11 +262,14 @@ def _inverse(writer: ArtifactWriter, cfg: Config, capture, calibration, result, 
         "gamma": float(fit.colour.gamma.detach()),
         "flow_consistent_fraction": float(np.nanmean([v.flow_consistent_fraction for v in inverse.views])),
         "flow_warped_views": int(sum(v.flow_used for v in inverse.views)),
+        "image_pass": inverse.image_pass,
+        "near_excluded_fraction": float(np.nanmean([v.near_fraction for v in inverse.views])),
         "colour_sync_residual_l1": {r: s["residual_l1"] for r, s in inverse.sync.items()},
         "colour_sync_gain": {r: s["gain"] for r, s in inverse.sync.items()},
         "sync_sequence": studio.sequence.name,
     })
-    writer.extra["observed_mask"] = ("render mask eroded by inverse.mask_erode_px, intersected with forward-backward "
+    writer.extra["observed_mask"] = ("render mask eroded by inverse.mask_erode_px, without pixels whose rendered depth is "
+                                     "under inverse.min_depth_m, intersected with forward-backward "
                                      "consistent flow and unclipped ego pixels (no ground truth)")
     write_image(writer.path(INVERSE_PREVIEW_PNG), inverse_preview(model, wild, inverse))
     return inverse
@@ -282,7 +289,8 @@ def inverse_preview(model, wild, inverse) -> np.ndarray:
         intensities = EnvmapPooling(wild.lightstage, *E_l.shape[:2])(fit.colour(E_l))
         for view in inverse.views:
             matrix = torch.tensor(inverse.sync[view.role]["matrix"], dtype=torch.float32)
-            render = (ei.render_view(model, wild, view, intensities, parts).colour @ matrix.T).numpy()
+            render = (ei.render_view(model, wild, view, intensities, parts, inverse.image_pass).colour
+                      @ matrix.T).numpy()
             colours = np.array([[230, 80, 60], [60, 120, 230], [240, 200, 40], [80, 200, 90], [200, 90, 220]])
             masks = view.masks.numpy()
             labels = np.zeros(masks.shape[1:] + (3,), np.uint8)

@@ -21,7 +21,9 @@ azimuth).
   ``sum_l Y(S_l) Omega_l w_l`` and of the brightest light;
 * log-L1 ``|log(eps + E_est) - log(eps + E_true)|`` per texel (channel mean, solid-angle
   weighted) over the observed and the unobserved (inpainted) texels, the truth area-averaged to
-  the estimate's resolution.
+  the estimate's resolution;
+* with the inverse rendering, the colour synchronisation's gain and matrix against the simulated
+  down cameras' true response (:func:`colour_sync_truth`).
 """
 
 from __future__ import annotations
@@ -133,6 +135,32 @@ def light_vector_metrics(estimate: np.ndarray, truth: np.ndarray, lightstage: Li
         "dominant_light_direction_error_deg": _angle_deg((lum_e * weights) @ dirs, (lum_t * weights) @ dirs),
         "brightest_light_direction_error_deg": _angle_deg(dirs[int(np.argmax(lum_e))], dirs[int(np.argmax(lum_t))]),
     }
+
+
+def colour_sync_truth(capture: Capture, sync: dict[str, dict]) -> dict[str, dict] | None:
+    """The fitted colour synchronisation of each down role against the simulator's camera response
+    (``groundtruth/ego_response.json``): the true ``M = exposure C / studio_exposure`` (the ego
+    camera's exposure and colour matrix over the studio cameras' HDR exposure, from the capture's
+    recorded synth config, 1 when absent). Per role ``{"true_gain": mean row sum, "gain_error":
+    fitted / true - 1, "matrix_max_abs_error"}``; None without ground truth."""
+    root = capture.groundtruth_root()
+    path = None if root is None else root / "groundtruth" / "ego_response.json"
+    if path is None or not path.is_file():
+        return None
+    responses = json.loads(path.read_text())
+    manifest = root / "manifest.json"
+    config = json.loads(manifest.read_text()).get("config", {}) if manifest.is_file() else {}
+    studio_exposure = float(config.get("studio", {}).get("exposure", 1.0))
+    out = {}
+    for role, fit in sync.items():
+        if role not in responses:
+            continue
+        true = np.asarray(responses[role]["colour_matrix"], np.float64) * float(responses[role]["exposure"]) / studio_exposure
+        fitted = np.asarray(fit["matrix"], np.float64)
+        true_gain = float(true.sum(axis=1).mean())
+        out[role] = {"true_gain": true_gain, "gain_error": float(fitted.sum(axis=1).mean() / true_gain - 1.0),
+                     "matrix_max_abs_error": float(np.abs(fitted - true).max())}
+    return out
 
 
 def log_l1(estimate: np.ndarray, truth: np.ndarray, mask: np.ndarray, eps: float) -> float | None:

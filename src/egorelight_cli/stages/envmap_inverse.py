@@ -35,8 +35,12 @@ of the relightable avatar into the down-facing HMD cameras (paper Eqs. ``inv-ren
   render pixels whose flow is forward-backward consistent (a render pixel whose partner in the
   ego image is background or another part breaks the consistency, as does a flow longer than
   ``flow.max`` of the image size: more than the tracking error), with the render's mask
-  eroded by ``mask_erode_px`` (silhouette pixels mix background), and not clipped in the ego
-  image. Parts: upper body, lower body, arms, legs, shoes (the head is under the headset).
+  eroded by ``mask_erode_px`` (silhouette pixels mix background), not clipped in the ego
+  image, and with the render's expected depth at least ``min_depth_m`` from the camera: a hand or
+  arm at the lens (the demo's studio frames have them 1-2 cm away) is splatted with a local affine
+  fisheye projection whose footprint covers the whole image, so such pixels (and views) say
+  nothing about colour (measured on the cpu demo: one such view among the 3 synchronisation frames
+  put the down-right gain at 0.72 against a true 1.02, with off-diagonal terms up to 1.5). Parts: upper body, lower body, arms, legs, shoes (the head is under the headset).
   Each part's L1 is a mean over its pixels and the parts weigh equally (the ego view is
   dominated by the upper body: this keeps one garment's tone from deciding the colour).
 * ``L_reg(E_h) = ||max(E_h / r - 1, 0)||_2 + ||max(-E_h / r, 0)||_2`` (RMS over texels and
@@ -52,6 +56,7 @@ images alone, so the panorama's contribution is measured.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -77,6 +82,9 @@ PARTS = {"upper_body": ("upper_clothes",), "lower_body": ("pants",), "arms": ("l
 #: colour model of the panorama).
 ROWS = {"fitted": (True, True, False), "no_flow": (False, True, False), "no_part_masks": (True, False, False),
         "no_panorama": (True, True, True)}
+#: The avatar image the fit compares with the ego images: ``full`` (``c_diff + c_spec``) or ``diffuse``
+#: (``c_diff`` alone: SpecularNet never saw the down cameras' grazing, from-above view directions).
+IMAGE_PASSES = ("full", "diffuse")
 FREE_MAP_INIT = 0.5  # the free map's start: a uniform grey of the LDR panorama's mid level
 
 
@@ -126,10 +134,12 @@ class InverseSettings:
     flow_max: float
     flow_min_consistent: float
     mask_erode_px: int
+    min_depth_m: float
     sync_frames: int
     sync_patterns: tuple[str, ...]
     rows: tuple[str, ...]
     free_map_height: int = 8
+    image_pass: str = "full"
 
     @classmethod
     def from_config(cls, cfg) -> InverseSettings:
@@ -138,8 +148,9 @@ class InverseSettings:
         rows = tuple(c.rows)
         settings = cls(tuple(c.roles), int(c.frames), int(c.steps), float(c.lr), int(c.views_per_step),
                        float(c.reg_weight), reg_max, str(c.flow.method), c.flow.raft_weights or None,
-                       float(c.flow.tolerance), float(c.flow.max), float(c.flow.min_consistent), int(c.mask_erode_px), int(c.sync.frames),
-                       tuple(c.sync.patterns), rows, int(c.free_map_height))
+                       float(c.flow.tolerance), float(c.flow.max), float(c.flow.min_consistent), int(c.mask_erode_px),
+                       float(c.min_depth_m), int(c.sync.frames),
+                       tuple(c.sync.patterns), rows, int(c.free_map_height), str(c.image_pass))
         of.flow_method(settings.flow, settings.raft_weights)  # an unknown method fails here
         # value ranges: the checks of stages/envmap.yaml
         if "fitted" not in rows:
@@ -211,6 +222,7 @@ class EgoView:
         target: (H,W,3) float32 tensor, the ego image on the render's pixels (warped or not).
         masks: (K,H,W) bool tensor, the part masks ``M_s`` (or one whole-body mask).
         flow_consistent_fraction: consistent flow pixels / rendered body pixels.
+        near_fraction: rendered body pixels closer than ``min_depth_m`` / rendered body pixels.
         flow_used: False when the flow was not consistent enough and the ego image was used unwarped.
     """
 
@@ -223,6 +235,7 @@ class EgoView:
     masks: torch.Tensor | None = None
     flow_consistent_fraction: float = float("nan")
     flow_used: bool = False
+    near_fraction: float = float("nan")
 
 
 def ego_view(data: RelightData, calibration, frame_id: int, role: str) -> EgoView:
@@ -240,23 +253,29 @@ def ego_view(data: RelightData, calibration, frame_id: int, role: str) -> EgoVie
 
 
 def render_view(model: rl.RelightModel, data: EgoAvatarData, view: EgoView, intensities: torch.Tensor,
-                parts: torch.Tensor):
+                parts: torch.Tensor, image_pass: str = "full"):
     """The avatar of ``view.frame_id`` under ``intensities`` (L,3) in ``view.camera``: a
-    :class:`~egorelight_cli.render.gaussians.GaussianRender` with pass ``parts`` (H,W,K)."""
+    :class:`~egorelight_cli.render.gaussians.GaussianRender` with pass ``parts`` (H,W,K) whose
+    ``colour`` is the image of ``image_pass`` (:data:`IMAGE_PASSES`)."""
+    if image_pass not in IMAGE_PASSES:
+        raise EgorelightError(f"inverse.image_pass must be one of {', '.join(IMAGE_PASSES)}, got {image_pass!r}")
     frame = data.lit(view.frame_id, intensities)
     rays, valid = rl.camera_rays(data.ray_lighting(view.frame_id), intensities, view.camera.centre_world,
                                  data.lightstage, data.rays)
     render, _ = rl.render_relit(model, frame, data.coverage, view.camera, rays, valid, extra_passes={"parts": parts})
-    return render
+    return render if image_pass == "full" else dataclasses.replace(render, colour=render.passes["diffuse"])
 
 
-def observe(view: EgoView, render_rgb: np.ndarray, alpha: np.ndarray, part_weights: np.ndarray, use_flow: bool,
-            use_parts: bool, settings: InverseSettings, method: str) -> None:
+def observe(view: EgoView, render_rgb: np.ndarray, alpha: np.ndarray, part_weights: np.ndarray, depth: np.ndarray,
+            use_flow: bool, use_parts: bool, settings: InverseSettings, method: str) -> None:
     """Set ``view.target`` and ``view.masks`` from a render (rgb (H,W,3), alpha (H,W), part
-    pass (H,W,K)) of the view: the module docstring's warp and observed masks."""
+    pass (H,W,K), expected depth (H,W) metres) of the view: the module docstring's warp and
+    observed masks."""
     import cv2
 
     body = alpha > 0.5
+    near = body & (depth < settings.min_depth_m)
+    view.near_fraction = float(near.sum() / max(body.sum(), 1))
     labels = np.where(part_weights.max(axis=-1) > 0.5 * np.maximum(alpha, 1e-6), part_weights.argmax(axis=-1), -1)
     size = 2 * settings.mask_erode_px + 1
     eroded = cv2.erode(body.astype(np.uint8), np.ones((size, size), np.uint8)) > 0 if settings.mask_erode_px else body
@@ -276,7 +295,7 @@ def observe(view: EgoView, render_rgb: np.ndarray, alpha: np.ndarray, part_weigh
             target = of.warp(view.ego, forward)
             unclipped = of.warp(view.unclipped.astype(np.float32), forward) > 0.999
             observed &= consistent
-    observed &= unclipped
+    observed &= unclipped & ~near
     if use_parts:
         masks = np.stack([observed & (labels == k) for k in range(len(PARTS))])
     else:
@@ -347,18 +366,21 @@ def fit_colour_model(panorama: torch.Tensor, pooling: EnvmapPooling, views: Sequ
 def fit_colour_sync(model: rl.RelightModel, data: EgoAvatarData, calibration, frames: np.ndarray,
                     settings: InverseSettings, parts: torch.Tensor, method: str) -> dict[str, dict]:
     """Per down role ``{"matrix": M (3,3) rows, "gain": mean row sum (grey's gain), "pixels",
-    "residual_l1", "frames"}``
+    "residual_l1", "frames", "near_fraction": per frame, the rendered body's share left out as too near}``
     with ``ego ~ M render`` (module docstring), from studio ``frames`` under their known light."""
     out = {}
     for role in settings.roles:
-        renders, observed = [], []
+        renders, observed, near = [], [], []
         for f in frames:
             view = ego_view(data, calibration, int(f), role)
             with torch.no_grad():
-                render = render_view(model, data, view, torch.as_tensor(data.known_intensities(int(f))), parts)
+                render = render_view(model, data, view, torch.as_tensor(data.known_intensities(int(f))), parts,
+                                     settings.image_pass)
             rgb, alpha = render.colour.numpy(), render.alpha.numpy()
-            observe(view, rgb, alpha, render.passes["parts"].numpy(), True, False, settings, method)
+            observe(view, rgb, alpha, render.passes["parts"].numpy(), render.expected_depth.numpy(), True, False,
+                    settings, method)
             mask = view.masks[0].numpy() & (alpha > 0.99)
+            near.append(view.near_fraction)
             renders.append(rgb[mask])
             observed.append(view.target.numpy()[mask])
         X, Y = np.concatenate(renders).astype(np.float64), np.concatenate(observed).astype(np.float64)
@@ -368,7 +390,8 @@ def fit_colour_sync(model: rl.RelightModel, data: EgoAvatarData, calibration, fr
         M = np.linalg.lstsq(X, Y, rcond=None)[0].T
         residual = float(np.abs(X @ M.T - Y).mean())
         out[role] = {"matrix": M.tolist(), "gain": float(M.sum(axis=1).mean()),
-                     "pixels": int(len(X)), "residual_l1": residual, "frames": [int(f) for f in frames]}
+                     "pixels": int(len(X)), "residual_l1": residual, "frames": [int(f) for f in frames],
+                     "near_fraction": [round(float(x), 4) for x in near]}
     return out
 
 
@@ -412,6 +435,7 @@ class InverseResult:
     flow_note: str | None
     reg_max: float
     panorama: np.ndarray
+    image_pass: str = "full"
 
 
 def inverse_render(model: rl.RelightModel, wild: EgoAvatarData, studio: EgoAvatarData, calibration,
@@ -431,12 +455,12 @@ def inverse_render(model: rl.RelightModel, wild: EgoAvatarData, studio: EgoAvata
     first = {}
     for view in base:  # the initial render: flow and part labels
         with torch.no_grad():
-            render = render_view(model, wild, view, initial, parts)
+            render = render_view(model, wild, view, initial, parts, settings.image_pass)
         rgb = (render.colour @ matrices[view.role].T).numpy()
-        first[id(view)] = (rgb, render.alpha.numpy(), render.passes["parts"].numpy())
+        first[id(view)] = (rgb, render.alpha.numpy(), render.passes["parts"].numpy(), render.expected_depth.numpy())
 
     def synced(view, intensities):
-        return render_view(model, wild, view, intensities, parts).colour @ matrices[view.role].T
+        return render_view(model, wild, view, intensities, parts, settings.image_pass).colour @ matrices[view.role].T
 
     fits, main_views = {}, []
     for row in settings.rows:
@@ -451,7 +475,8 @@ def inverse_render(model: rl.RelightModel, wild: EgoAvatarData, studio: EgoAvata
                                      FreeEnvmap(settings.free_map_height) if free_map else None)
         if row == "fitted":
             main_views = views
-    return InverseResult(fits, sync, main_views, frames, method, note, reg_max, np.asarray(panorama))
+    return InverseResult(fits, sync, main_views, frames, method, note, reg_max, np.asarray(panorama),
+                         settings.image_pass)
 
 
 def auto_reg_max(envmaps) -> float:
