@@ -216,12 +216,12 @@ def _write_envmap(writer: ArtifactWriter, cfg: Config, capture, calibration, seq
             writer.metrics["relit_views"] = relit["relit_views"]
         writer.metrics.update(rows[row])
         writer.metrics["rows"] = rows
+        writer.metrics.update({"truth_envmap": truth.name, "truth_frame_yaw_deg": truth.frame_yaw_deg,
+                               "truth_frame_tilt_deg": truth.frame_tilt_deg})
     if inverse is not None:
         sync_truth = ev.colour_sync_truth(capture, inverse.sync)
         if sync_truth is not None:
             writer.metrics["colour_sync_truth"] = sync_truth
-        writer.metrics.update({"truth_envmap": truth.name, "truth_frame_yaw_deg": truth.frame_yaw_deg,
-                               "truth_frame_tilt_deg": truth.frame_tilt_deg})
     writer.extra["frame"] = f"the calibrated head poses of sequence {sequence.name}"
     if inverse is None:
         writer.extra["camera_response"] = ("unknown: front images linearised by the inverse sRGB curve only; the "
