@@ -124,7 +124,7 @@ def test_egodepth_scores_against_a_truth_of_another_topology(tiny_capture, retop
         frame = int(sequence.content_frame_ids[-1])
         views = [ed.load_view(capture, oracle_calibration, sequence, role, frame)
                  for role in capture.ego_cameras if role.startswith("down")]
-        truths.append(ed.GroundTruth(capture, sequence, 0.05))
+        truths.append(ed.GroundTruth(capture, oracle_calibration, sequence, 0.05))
         frames.append(truths[-1].frame(frame, views))
     (surface, maps), (fine_surface, fine_maps) = frames
     # the subdivided truth is the same surface: the same true ranges, body masks and distances

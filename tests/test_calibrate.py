@@ -15,7 +15,7 @@ from egorelight_cli.cli import main
 from egorelight_cli.config import resolve_config
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.geometry.markers import refine_marker_edges
-from egorelight_cli.geometry.rigid import kabsch, rigid_from_vector, rotation_angle_deg
+from egorelight_cli.geometry.rigid import kabsch, mean_frame_change, rigid_from_vector, rotation_angle_deg
 from egorelight_cli.io.calibration import read_calibration
 from egorelight_cli.io.capture import Capture, SequenceInfo
 from egorelight_cli.stages.calibrate import calibrate
@@ -210,6 +210,19 @@ def test_rigid_helpers_round_trip():
     Q = P @ T[:3, :3].T + T[:3, 3]
     assert np.allclose(kabsch(P, Q), T, atol=1e-9)
     assert rotation_angle_deg(T[:3, :3], T[:3, :3]) < 1e-6
+
+
+def test_mean_frame_change_recovers_one_rigid_change_of_world():
+    rng = np.random.default_rng(4)
+    T_a_from_b = rigid_from_vector(np.concatenate([rng.normal(size=3), rng.normal(size=3)]))
+    T_b = np.stack([rigid_from_vector(np.concatenate([rng.normal(size=3), rng.normal(size=3)])) for _ in range(7)])
+    assert np.allclose(mean_frame_change(T_a_from_b @ T_b, T_b), T_a_from_b, atol=1e-9)
+    # per-pose noise of 1 cm / ~0.6 deg averages out to well under a centimetre and a degree
+    noisy = np.stack([rigid_from_vector(np.concatenate([rng.normal(0, 0.01, 3), rng.normal(0, 0.01, 3)])) @ T
+                      for T in T_a_from_b @ T_b])
+    estimate = mean_frame_change(noisy, T_b)
+    assert rotation_angle_deg(estimate[:3, :3], T_a_from_b[:3, :3]) < 1.0
+    assert np.abs(estimate - T_a_from_b)[:3, 3].max() < 0.05
 
 
 # ---------------------------------------------------------------------------------- bad input

@@ -50,7 +50,7 @@ def test_recon_supervision_agrees_with_the_true_body(tiny_capture, oracle_calibr
     sequence = capture.sequence("test")
     views = ed.supervision(capture, oracle_calibration, [sequence], ROLES, near_m=0.07)
     assert len(views) == 2 * len(sequence.content_frame_ids)
-    truth = ed.GroundTruth(capture, sequence, 0.05)
+    truth = ed.GroundTruth(capture, oracle_calibration, sequence, 0.05)
     gaps = []
     for view in views[:2]:
         ego = ed.load_view(capture, oracle_calibration, sequence, view.role, view.frame_id)

@@ -233,6 +233,43 @@ def test_wild_uses_the_tracker_when_the_calibration_has_no_poses(trained, tiny_c
     assert frames.valid.all() and frames.images.shape[1:3] == (2, 3)
 
 
+def test_wild_truth_is_scored_in_the_frame_of_the_trackers_head_poses(trained, tiny_capture, oracle_calibration):
+    """A headset tracker's world is its own: wild head poses moved by one rigid transform and
+    marked as the tracker's take the ground truth with them (same scores); the same poses marked
+    as the studio's are scored in the studio's world and miss by metres."""
+    from dataclasses import replace
+
+    from egorelight_cli.geometry.equirect import yaw_rotation
+    from egorelight_cli.geometry.rigid import rigid
+    from egorelight_cli.io.capture import Capture
+    from egorelight_cli.stages.egopose import evaluate, groundtruth_keypoints, load_frames, predict, rig_geometry
+    from egorelight_cli.stages.egopose_commands import load_egopose_model
+    from egorelight_cli.synth.groundtruth import T_pose_frame_from_truth_world
+
+    capture = Capture(tiny_capture)
+    model, _ = load_egopose_model(trained / "model")
+    # a tracker's world shares gravity (+Y up): a yaw and a shift (the network's heading frame is
+    # built from gravity, so a tilted world would change its input, not just the frame)
+    T_tracker_from_world = rigid(yaw_rotation(-63.0), np.array([1.5, 0.0, -2.0]))
+    wild = oracle_calibration.head_poses["wild"]
+    moved = replace(oracle_calibration, head_poses={**oracle_calibration.head_poses, "wild": replace(
+        wild, T_world_from_hmd=T_tracker_from_world @ wild.T_world_from_hmd)})
+    tracker = replace(moved, extras={"head_pose_sources": {"wild": "headset tracker aligned to visual odometry"}})
+    assert np.allclose(T_pose_frame_from_truth_world(tiny_capture, tracker, "wild"), T_tracker_from_world, atol=1e-9)
+    assert np.array_equal(T_pose_frame_from_truth_world(tiny_capture, moved, "wild"), np.eye(4))
+
+    def score(calibration):
+        frames = load_frames(capture, calibration, "wild", model.input_size)
+        prediction = predict(model.net, frames, rig_geometry(capture, calibration), 0.08)
+        truth = groundtruth_keypoints(capture, "wild", calibration)
+        return evaluate(prediction, frames, truth, model.mean_pose_heading)
+
+    reference, in_tracker_frame, as_studio = score(oracle_calibration), score(tracker), score(moved)
+    for key in ("mpjpe_body_cm", "mpjpe_hands_cm", "mean_pose_mpjpe_body_cm"):
+        assert in_tracker_frame[key] == pytest.approx(reference[key], abs=0.05), key
+        assert as_studio[key] > 100.0, key
+
+
 @pytest.mark.parametrize("case", ["missing_model", "no_ego_stream", "no_mocap", "wrong_model", "missing_calibration"])
 def test_bad_input_is_a_one_line_error(case, trained, tiny_capture, oracle_calibration_artifact, tmp_path, capsys):
     common = ["--preset", "tiny", "--capture", str(tiny_capture), "--calibration", str(oracle_calibration_artifact)]

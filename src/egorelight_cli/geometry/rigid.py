@@ -54,6 +54,15 @@ def mean_rotation(Rs) -> np.ndarray:
     return project_to_rotation(np.sum(np.asarray(Rs, np.float64), axis=0))
 
 
+def mean_frame_change(T_a_from_x, T_b_from_x) -> np.ndarray:
+    """(4,4) rigid ``T_a_from_b`` with ``T_a_from_x[i] ~ T_a_from_b @ T_b_from_x[i]`` for poses
+    (N,4,4) of one moving body in two world frames a and b: rotation the chordal mean of the
+    per-pose ``R_a R_b^T``, translation the least-squares one for that rotation (same units)."""
+    Ta, Tb = np.asarray(T_a_from_x, np.float64), np.asarray(T_b_from_x, np.float64)
+    R = mean_rotation(Ta[:, :3, :3] @ np.swapaxes(Tb[:, :3, :3], 1, 2))
+    return rigid(R, np.mean(Ta[:, :3, 3] - Tb[:, :3, 3] @ R.T, axis=0))
+
+
 def kabsch_rotations(P: np.ndarray, Q: np.ndarray, w: np.ndarray) -> np.ndarray:
     """Weighted rotations R (T,3,3) with ``R P + t ~ Q``; P (K,3), Q (T,K,3), w (T,K)."""
     wsum = w.sum(axis=1, keepdims=True)[..., None]

@@ -38,7 +38,7 @@ from egorelight_cli.errors import EgorelightError
 from egorelight_cli.geometry.cameras import invert_rigid
 from egorelight_cli.geometry.rigid import mean_rotation, rotation_angle_deg
 from egorelight_cli.io.calibration import write_calibration
-from egorelight_cli.structures.calibration import Calibration, EgoCameraCalibration, HeadPoses
+from egorelight_cli.structures.calibration import STUDIO_HEAD_POSE_SOURCE, Calibration, EgoCameraCalibration, HeadPoses
 from egorelight_cli.io.capture import Capture, SequenceInfo, open_capture
 from egorelight_cli.pipeline import StageRun
 from egorelight_cli.stages.calibrate_handeye import HandEyeResult, calibrate_hand_eye
@@ -129,7 +129,7 @@ def calibrate(capture: Capture, cfg: Config) -> CalibrationRun:
         "uncalibrated_cameras": dict(handeye.missing),
         "sync": {name: {"stream_offset": s.stream_offset, "correlation": s.correlation, "runner_up": s.runner_up}
                  for name, s in syncs.items()},
-        "head_pose_sources": {**{name: "studio ArUco markers" for name in tracks},
+        "head_pose_sources": {**{name: STUDIO_HEAD_POSE_SOURCE for name in tracks},
                               **({wild_name: f"headset tracker aligned to visual odometry ({cfg.wild.pose_source})"
                                   if wild else
                                   "headset tracker, uncorrected (alignment failed)"} if wild_name in head_poses else {})},

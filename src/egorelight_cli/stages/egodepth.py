@@ -45,7 +45,7 @@ import torch
 
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.sharding import evenly_spaced
-from egorelight_cli.geometry.cameras import Camera, invert_rigid
+from egorelight_cli.geometry.cameras import Camera, invert_rigid, transform_points
 from egorelight_cli.geometry.depth import camera_ray_map, depth_edges, range_to_depth, render_depth, unproject_depth
 from egorelight_cli.geometry.pointcloud_ops import fixed_size_cloud, fuse_views
 from egorelight_cli.geometry.raycast import RayCaster
@@ -432,17 +432,22 @@ def frame_pointcloud(views: Sequence[EgoView], ranges: dict, ray_maps: dict, siz
 # -------------------------------------------------------------------------------- evaluation
 class GroundTruth:
     """The true body surface per frame (``groundtruth/<seq>/meshes.npz``, any topology), for
-    scoring only."""
+    scoring only, in the frame of ``calibration``'s head poses
+    (:func:`~egorelight_cli.synth.groundtruth.T_pose_frame_from_truth_world`)."""
 
-    def __init__(self, capture: Capture, sequence: SequenceInfo, occluder_margin_m: float):
+    def __init__(self, capture: Capture, calibration: Calibration, sequence: SequenceInfo, occluder_margin_m: float):
         from egorelight_cli.stages.animate_eval import groundtruth_meshes
+        from egorelight_cli.synth.groundtruth import T_pose_frame_from_truth_world
 
         truth = groundtruth_meshes(capture, sequence.name)
         self.available = truth is not None
         self.sequence = sequence
         self.margin = occluder_margin_m
         if self.available:
-            self.vertices, self.faces, self.frame_ids = truth.vertices, truth.faces, truth.frame_ids
+            self.T_pose_frame_from_truth = T_pose_frame_from_truth_world(capture.groundtruth_root(), calibration,
+                                                                         sequence.name)
+            self.vertices = transform_points(self.T_pose_frame_from_truth, truth.vertices).astype(np.float32)
+            self.faces, self.frame_ids = truth.faces, truth.frame_ids
 
     def has(self, frame_id: int) -> bool:
         return self.available and bool(np.any(self.frame_ids == frame_id))
@@ -458,7 +463,8 @@ class GroundTruth:
         caster = RayCaster(self.vertices[i], self.faces)
         recon = None
         if self.sequence.recon_path(frame_id).exists():
-            recon = RayCaster(*read_mesh(self.sequence.recon_path(frame_id)))
+            recon_vertices, recon_faces = read_mesh(self.sequence.recon_path(frame_id))
+            recon = RayCaster(transform_points(self.T_pose_frame_from_truth, recon_vertices), recon_faces)
         maps = {}
         for v in views:
             truth = render_depth(v.camera, caster)

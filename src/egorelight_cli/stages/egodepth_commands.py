@@ -210,7 +210,7 @@ def _predict_sequence(writer: ArtifactWriter, cfg: Config, capture: Capture, cal
     compare = method == "net" and bool(cfg.eval.compare_sgbm)
     uses_stereo = method == "sgbm" or (model is not None and model.stereo_input)  # SGBM on every frame
     sgbm = ed.SGBMDepth(capture, calibration, roles, cfg) if uses_stereo or compare else None
-    truth = ed.GroundTruth(capture, sequence, float(cfg.eval.occluder_margin_m))
+    truth = ed.GroundTruth(capture, calibration, sequence, float(cfg.eval.occluder_margin_m))
     P = int(cfg.pointcloud.points)
     k = int(cfg.pointcloud.normal_neighbours)
     preview_at = np.linspace(0, len(frames) - 1, max(min(int(cfg.preview.frames), len(frames)), 1)).round().astype(int)
@@ -276,6 +276,10 @@ def _predict_sequence(writer: ArtifactWriter, cfg: Config, capture: Capture, cal
                     description="per frame: the depth error sums and point-to-surface distances (m, NaN-padded) "
                                 "of each method, the metrics' source")
     writer.metrics.update(run_metrics(rows, valid, method, sequence.name))
+    if truth.available:
+        from egorelight_cli.synth.groundtruth import truth_frame_note
+
+        writer.metrics["groundtruth_frame"] = truth_frame_note(calibration, sequence.name)
     done = int(posed.sum())
     writer.timing.update({"depth_ms_per_frame": round(1000 * timing["depth_s"] / max(done, 1), 2),
                           "pointcloud_ms_per_frame": round(1000 * timing["pointcloud_s"] / max(done, 1), 2)})

@@ -583,12 +583,20 @@ def keypoint_metrics(pred: np.ndarray, frame_ids: np.ndarray, truth: Keypoints, 
     return {k: (round(v, 3) if isinstance(v, float) and np.isfinite(v) else v) for k, v in metrics.items()}
 
 
-def groundtruth_keypoints(capture: Capture, sequence: str) -> Keypoints | None:
-    """``groundtruth/<seq>/keypoints.npz`` of a simulated capture (evaluation only), else None."""
+def groundtruth_keypoints(capture: Capture, sequence: str, calibration: Calibration) -> Keypoints | None:
+    """``groundtruth/<seq>/keypoints.npz`` of a simulated capture (evaluation only), in the frame
+    of ``calibration``'s head poses of ``sequence``
+    (:func:`~egorelight_cli.synth.groundtruth.T_pose_frame_from_truth_world`), else None."""
+    from egorelight_cli.geometry.cameras import transform_points
     from egorelight_cli.io.keypoints import read_keypoints_npz
+    from egorelight_cli.synth.groundtruth import T_pose_frame_from_truth_world
 
     path = capture.groundtruth_file(sequence, "keypoints.npz")
-    return None if path is None else read_keypoints_npz(path)
+    if path is None:
+        return None
+    truth = read_keypoints_npz(path)
+    T = T_pose_frame_from_truth_world(capture.groundtruth_root(), calibration, sequence)
+    return truth if np.array_equal(T, np.eye(4)) else dataclasses.replace(truth, xyz=transform_points(T, truth.xyz))
 
 
 def evaluate(prediction: Prediction, frames: EgoFrames, truth: Keypoints, mean_pose_heading: np.ndarray | None,

@@ -179,6 +179,7 @@ class EgoPoseCommands:
         model, _ = load_egopose_model(model_path)
         from egorelight_cli.sharding import write_preview
         from egorelight_cli.stages.egopose import frame_table, groundtruth_keypoints, load_frames, predict, rig_geometry
+        from egorelight_cli.synth.groundtruth import truth_frame_note
         from egorelight_cli.stages.egopose_preview import preview_image, preview_rows
         from egorelight_cli.stages.egopose_scores import SCORES_NPZ, egopose_metrics, egopose_scores
 
@@ -197,13 +198,15 @@ class EgoPoseCommands:
             if not frame_range.whole:
                 writer.extra["shard"] = frame_range.manifest(len(table.frame_ids))
             save_keypoints(writer, prediction.keypoints, sequence=sequence, head_poses=frames.head_pose_source)
-            truth = groundtruth_keypoints(capture, sequence)
+            truth = groundtruth_keypoints(capture, sequence, calibration)
             scored = truth is not None and frames.head_pose_source == "calibration"
             scores = egopose_scores(prediction, frames, truth if scored else None, model.mean_pose_heading)
             writer.metrics["head_poses"] = frames.head_pose_source
             writer.metrics.update(egopose_metrics(scores, prediction.keypoints.confidence))
             if truth is not None and not scored:
                 writer.metrics["groundtruth_not_scored"] = "head poses are in the tracker's own world frame"
+            if scored:
+                writer.metrics["groundtruth_frame"] = truth_frame_note(calibration, sequence)
             if writer.single_file:
                 return
             writer.save_npz(SCORES_NPZ, scores, frame_ids=frames.frame_ids, rows=sorted(scores),
@@ -241,7 +244,7 @@ def _held_out_metrics(capture: Capture, calibration: Calibration, result: TrainR
     sequence = str(settings.cfg.evaluate_sequence)
     if not sequence or sequence not in capture.sequence_names() or sequence not in calibration.head_poses:
         return {}
-    truth = groundtruth_keypoints(capture, sequence)
+    truth = groundtruth_keypoints(capture, sequence, calibration)
     if truth is None:
         return {}
     frames = load_frames(capture, calibration, sequence, int(settings.cfg.input_size))

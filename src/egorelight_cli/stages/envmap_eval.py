@@ -36,7 +36,7 @@ import cv2
 import numpy as np
 
 from egorelight_cli.geometry.equirect import check_envmap, equirect_solid_angles, rotate_envmap, yaw_rotation
-from egorelight_cli.geometry.rigid import mean_rotation, rotation_angle_deg
+from egorelight_cli.geometry.rigid import mean_frame_change, rotation_angle_deg
 from egorelight_cli.io.calibration import Calibration
 from egorelight_cli.io.capture import Capture
 from egorelight_cli.render.envmaps import load_envmap
@@ -71,7 +71,7 @@ def yaw_of(R: np.ndarray) -> float:
 
 def pose_frame_rotation(T_cal: np.ndarray, T_true: np.ndarray) -> np.ndarray:
     """(3,3) ``Q`` with ``R_true ~ Q R_cal``: directions of the calibration's frame -> world."""
-    return mean_rotation(T_true[:, :3, :3] @ np.swapaxes(T_cal[:, :3, :3], 1, 2))
+    return mean_frame_change(T_true, T_cal)[:3, :3]
 
 
 def truth_in_pose_frame(world_map: np.ndarray, world_yaw_deg: float, Q: np.ndarray) -> tuple[np.ndarray, float, float]:

@@ -11,6 +11,11 @@ import numpy as np
 from egorelight_cli.errors import EgorelightError
 
 
+# ``extras["head_pose_sources"][seq]`` of a sequence tracked by the studio's cameras: its head poses
+# are in the studio's world (any other source, e.g. a headset tracker, has a world of its own)
+STUDIO_HEAD_POSE_SOURCE = "studio ArUco markers"
+
+
 @dataclass(frozen=True)
 class HeadPoses:
     """Per-frame HMD poses of one sequence.
@@ -77,6 +82,13 @@ class Calibration:
             raise EgorelightError(f"calibration has no head poses for sequence {sequence!r}", self.source)
         H = self.head_poses[sequence].pose(frame_id)
         return H @ np.linalg.inv(self.ego_cameras[role].T_cam_from_hmd)
+
+    def head_poses_in_studio_world(self, sequence: str) -> bool:
+        """False when the calibration says the head poses of ``sequence`` come from something other
+        than the studio's marker tracking (a headset tracker's own world frame); True otherwise
+        (studio tracking, or a calibration that does not say, such as the oracle)."""
+        source = self.extras.get("head_pose_sources", {}).get(sequence)
+        return source is None or source == STUDIO_HEAD_POSE_SOURCE
 
     def ego_frame_id(self, sequence: str, frame_id: int) -> int:
         """The ego-stream frame id that shows master-clock frame ``frame_id``."""

@@ -115,6 +115,41 @@ def read_head_poses(root: str | Path, seq: str) -> dict[str, np.ndarray]:
     return arrays
 
 
+def T_pose_frame_from_truth_world(root: str | Path, calibration, seq: str) -> np.ndarray:
+    """(4,4) rigid transform from the simulated world into the frame of ``calibration``'s head
+    poses of ``seq``, so that ground truth can be scored against what the stages put there.
+
+    Identity where the head poses are in the studio's world
+    (:meth:`~egorelight_cli.structures.calibration.Calibration.head_poses_in_studio_world`);
+    otherwise (a headset tracker's own world, the wild sequence) the one rigid change of frame
+    that best maps the true head poses onto the calibrated ones over the frames both have
+    (:func:`~egorelight_cli.geometry.rigid.mean_frame_change`): the score then measures the
+    stage, not where the tracker put its origin.
+    """
+    from egorelight_cli.errors import EgorelightError
+    from egorelight_cli.geometry.rigid import mean_frame_change
+
+    if calibration.head_poses_in_studio_world(seq):
+        return np.eye(4)
+    poses = calibration.head_poses.get(seq)
+    if poses is None:
+        raise EgorelightError(f"calibration has no head poses for sequence {seq!r}", calibration.source)
+    truth = read_head_poses(root, seq)
+    ids, ours, theirs = np.intersect1d(poses.frame_ids[poses.valid], truth["frame_ids"], return_indices=True)
+    if len(ids) == 0:
+        raise EgorelightError(f"the calibrated head poses of {seq!r} share no frame with the ground truth",
+                              calibration.source)
+    return mean_frame_change(poses.T_world_from_hmd[poses.valid][ours], truth["T_world_from_hmd"][theirs])
+
+
+def truth_frame_note(calibration, seq: str) -> str:
+    """How :func:`T_pose_frame_from_truth_world` placed the ground truth of ``seq`` (manifest text)."""
+    if calibration.head_poses_in_studio_world(seq):
+        return "the studio's world (as calibrated)"
+    return ("the head poses' own world frame: one rigid change of frame fitted to the true head poses, "
+            "so the score leaves out where the tracker put its origin")
+
+
 def oracle_calibration(root: str | Path):
     """A :class:`~egorelight_cli.io.calibration.Calibration` built from ground truth: true hand-eye
     transforms, true stream offsets and true head poses of every sequence with a worn HMD.
