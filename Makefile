@@ -82,6 +82,8 @@ $(PREVIEWS)/character.png: $(CHARACTER)
 # the chain for any sequence. Ground-truth metrics are added when the capture carries groundtruth/.
 CALIBRATION := $(SUBJECT)/calibration/manifest.json
 GT = $(if $(wildcard $(SUBJECT)/capture/groundtruth/$(1)),--gt $(SUBJECT)/capture/groundtruth/$(1))
+# ... scored in the frame of the calibrated head poses that placed the keypoints (a tracker's own world for wild)
+GT_POSED = $(call GT,$(1)) $(if $(wildcard $(SUBJECT)/capture/groundtruth/$(1)/head_pose.npz),--calibration $(SUBJECT)/calibration)
 
 # Frame shards (issue 22): with SHARDS=N > 1 the per-frame stages egopose, egodepth, geolift and relight run
 # as N shards (`--shard i/N`, partial artifacts under $(SUBJECT)/shards/) that `egorelight merge`
@@ -159,7 +161,7 @@ $(IK_MODEL): $(CHARACTER) $(addsuffix /manifest.json,$(IK_TRAIN_MOTIONS))
 # motion/<seq>: from the headset alone (egopose keypoints)
 $(SUBJECT)/motion/%/manifest.json: $(SUBJECT)/keypoints/%/manifest.json $(CHARACTER) $(IK_MODEL)
 	$(EGO) $(EGOFLAGS) ik --in $(SUBJECT)/keypoints/$* --character $(SUBJECT)/character \
-		--model $(SUBJECT)/models/ik $(call GT,$*) --out $(SUBJECT)/motion/$*
+		--model $(SUBJECT)/models/ik $(call GT_POSED,$*) --out $(SUBJECT)/motion/$*
 
 # ik from a keypoints file: $(1) keypoints, $(2) sequence, $(3) output
 IK_FROM = $(EGO) $(EGOFLAGS) ik --in $(1) --character $(SUBJECT)/character --model $(SUBJECT)/models/ik \

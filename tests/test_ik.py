@@ -348,6 +348,44 @@ def test_cli_ground_truth_folder(run, sequence, tmp_path, character, model):
                           "neither keypoints.npz nor motion.npz")
 
 
+def test_cli_wild_truth_is_scored_in_the_frame_of_the_trackers_head_poses(run, tiny_capture, oracle_calibration,
+                                                                         tmp_path):
+    """Keypoints placed by head poses in a tracker's own world (one yaw and shift off the truth's)
+    are scored against the truth taken into that world when ``--calibration`` says so; without it
+    they miss by metres. A ``--calibration`` without a ground-truth folder is a one-line error."""
+    import json
+    from dataclasses import replace
+
+    from egorelight_cli.artifacts import ArtifactWriter
+    from egorelight_cli.geometry.cameras import transform_points
+    from egorelight_cli.geometry.equirect import yaw_rotation
+    from egorelight_cli.geometry.rigid import rigid
+    from egorelight_cli.io.calibration import write_calibration
+    from egorelight_cli.io.keypoints import read_keypoints_npz, save_keypoints
+
+    T_tracker_from_world = rigid(yaw_rotation(-63.0), np.array([1.5, 0.0, -2.0]))
+    wild = oracle_calibration.head_poses["wild"]
+    tracker = replace(oracle_calibration, head_poses={**oracle_calibration.head_poses, "wild": replace(
+        wild, T_world_from_hmd=T_tracker_from_world @ wild.T_world_from_hmd)},
+        extras={"head_pose_sources": {"wild": "headset tracker aligned to visual odometry"}})
+    with ArtifactWriter(tmp_path / "calibration", kind="calibration", stage="oracle", config={}) as writer:
+        write_calibration(writer.workdir, tracker)
+    folder = tiny_capture / "groundtruth" / "wild"
+    truth = read_keypoints_npz(folder / "keypoints.npz")
+    with ArtifactWriter(tmp_path / "keypoints", kind="keypoints", stage="egopose", config={}) as writer:
+        save_keypoints(writer, replace(truth, xyz=transform_points(T_tracker_from_world, truth.xyz)))
+    common = ("ik", "--preset", "tiny", "--in", tmp_path / "keypoints", "--gt", folder)
+    for flags, out in ((("--calibration", tmp_path / "calibration"), "posed"), ((), "plain")):
+        result = run(*common, *flags, "--out", tmp_path / out)
+        assert result.returncode == 0, result.stderr
+    posed, plain = (json.loads((tmp_path / out / "manifest.json").read_text())["metrics"] for out in ("posed", "plain"))
+    assert posed["gt_mpjpe_body_cm"] < 5.0 and plain["gt_mpjpe_body_cm"] > 100.0, (posed, plain)
+    assert "own world" in posed["groundtruth_frame"] and "gt_dof_error_deg" not in posed
+    assert_one_line_error(run("ik", "--in", tmp_path / "keypoints", "--gt", folder / "keypoints.npz",
+                              "--calibration", tmp_path / "calibration", "--out", tmp_path / "bad"),
+                          "--calibration needs --gt to be a capture/groundtruth/<seq> folder")
+
+
 def test_cli_train_ik_then_use_the_model(run, sequence, tmp_path):
     assert run("train", "ik", str(sequence / "gt.npz"), "--out", str(tmp_path / "model"), "--preset", "tiny").returncode == 0
     assert (tmp_path / "model" / "model.pt").is_file()

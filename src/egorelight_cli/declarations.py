@@ -126,7 +126,10 @@ STAGE_COMMANDS = (
                     character(),
                     Input("--model", "model", "ik model (train ik); default: built from the character.", ("model",)),
                     Input("--gt", "gt", "Ground truth (keypoints or motion artifact/npz, or a capture/groundtruth/<seq> "
-                          "folder).", ("keypoints", "motion"), (".npz", "folder"))),
+                          "folder).", ("keypoints", "motion"), (".npz", "folder")),
+                    calibration("With a capture/groundtruth/<seq> --gt: the calibration whose head poses placed the "
+                                "input keypoints; the truth is scored in their frame (a tracker's own world).",
+                                required=False)),
             options=(Option("--solver", "solver", "lm (default, fast) or lbfgs (the paper's baseline).",
                             type=("lm", "lbfgs"), config_key="solver"),)),
     Command(("train", "egodepth"), "egodepth",

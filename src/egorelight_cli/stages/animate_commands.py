@@ -254,7 +254,7 @@ class AnimateCommands:
             distances = None
             if capture is not None:
                 distances = _score(writer, capture, sequence, model, meshes, template, uv_inputs, no_depth,
-                                   int(cfg["preview"]["frames"]))
+                                   int(cfg["preview"]["frames"]), calibration)
             fmt = export if export is not None else str(cfg["export"])
             if fmt != "none":
                 if writer.single_file:
@@ -268,13 +268,18 @@ class AnimateCommands:
 
 # ---------------------------------------------------------------------------------- scoring
 def _score(writer: ArtifactWriter, capture: Capture, sequence: str, model: AnimationModel, meshes: MeshSequence,
-           template, uv_inputs: torch.Tensor, no_depth: bool, preview_count: int) -> dict[int, np.ndarray] | None:
+           template, uv_inputs: torch.Tensor, no_depth: bool, preview_count: int,
+           pose_calibration=None) -> dict[int, np.ndarray] | None:
     """Ground-truth metrics (a) skinning, (b) no depth, (c) full, against a truth of any
     topology (:func:`~egorelight_cli.stages.animate_eval.score_meshes`); per-vertex pred->true
-    distances (cm) of the preview frames."""
+    distances (cm) of the preview frames. With ``pose_calibration`` (the one the motion's head
+    poses came from) the meshes are first taken from its frame to the truth's
+    (:func:`~egorelight_cli.synth.groundtruth.T_pose_frame_from_truth_world`); without, the two
+    are taken to be the same."""
     from egorelight_cli.stages.animate import XI_CHANNELS
     from egorelight_cli.stages.animate_eval import SCORED, groundtruth_meshes, score_meshes, true_surfaces
-    from egorelight_cli.synth.groundtruth import oracle_calibration
+    from egorelight_cli.geometry.cameras import invert_rigid, transform_points
+    from egorelight_cli.synth.groundtruth import T_pose_frame_from_truth_world, oracle_calibration, truth_frame_note
 
     truth = groundtruth_meshes(capture, sequence)
     if truth is None:
@@ -289,6 +294,12 @@ def _score(writer: ArtifactWriter, capture: Capture, sequence: str, model: Anima
         blind[:, XI_CHANNELS] = 0.0
         predictions["no_depth"] = model.predict(blind, meshes.theta)["vertices"]
         predictions["full"] = meshes.vertices
+    if pose_calibration is not None:  # the meshes live in the frame of the head poses: take them to the truth's
+        T = T_pose_frame_from_truth_world(capture.groundtruth_root(), pose_calibration, sequence)
+        if not np.array_equal(T, np.eye(4)):
+            predictions = {k: transform_points(invert_rigid(T), np.asarray(v)).astype(np.float32)
+                           for k, v in predictions.items()}
+        writer.metrics["groundtruth_frame"] = truth_frame_note(pose_calibration, sequence)
     scores = score_meshes(predictions, meshes.faces, meshes.frame_ids, surfaces)
     mine = "no_depth" if no_depth else "full"
     for key in [f"p2s_{measure}_cm" for measure in SCORED] + ["p2s_cm", "p2s_ego_visible_cm"]:

@@ -11,7 +11,11 @@
 * a DDC motion (``.motion``): taken as theta directly when its DoF count matches the character.
 
 ``--gt`` accepts a keypoints or motion artifact (or lone npz), or a directory holding
-``keypoints.npz`` and/or ``motion.npz`` (the simulator's ``capture/groundtruth/<seq>/``).
+``keypoints.npz`` and/or ``motion.npz`` (the simulator's ``capture/groundtruth/<seq>/``). With
+such a folder, ``--calibration`` names the calibration whose head poses placed the input
+keypoints: where those live in a world of their own (a headset tracker's), the truth's keypoints
+are taken into it (:func:`~egorelight_cli.synth.groundtruth.T_pose_frame_from_truth_world`) and
+only keypoint errors are scored (DoF errors need one world).
 
 The motion artifact holds ``motion.npz`` (see :mod:`egorelight_cli.io.motion`) and, for a
 directory output, ``preview.png`` (fitted skeleton over the target keypoints for a few frames).
@@ -94,6 +98,36 @@ def _bvh_input(path: Path, character: Character, cfg: Config) -> IKInput:
     info = {"source": "bvh", "bvh_joints_mapped": len(mapping), "bvh_scale": scale, "bvh_fps": clip.fps,
             "bvh_mapping": mapping}
     return IKInput(keypoints=keypoints, sources=[path], info=info)
+
+
+def _gt_in_pose_frame(calibration_path: Path, gt_path: Path | None, character: Character,
+                      gt_keypoints: Keypoints | None, gt_motion: Motion | None):
+    """(keypoints, motion, manifest note, calibration artifact): the ground truth of a
+    ``capture/groundtruth/<seq>`` folder in the frame of the calibration's head poses of ``seq``
+    (keypoints only, FK of the motion if need be, where that frame is not the truth's)."""
+    import dataclasses
+
+    from egorelight_cli.geometry.cameras import transform_points
+    from egorelight_cli.io.calibration import open_calibration
+    from egorelight_cli.synth.groundtruth import T_pose_frame_from_truth_world, truth_frame_note
+
+    if gt_path is None or not (Path(gt_path) / "head_pose.npz").is_file():
+        raise EgorelightError("--calibration needs --gt to be a capture/groundtruth/<seq> folder with head_pose.npz",
+                              gt_path or calibration_path)
+    calibration, artifact = open_calibration(calibration_path)
+    gt_path = Path(gt_path)
+    sequence, root = gt_path.name, gt_path.parent.parent
+    T = T_pose_frame_from_truth_world(root, calibration, sequence)
+    if not np.array_equal(T, np.eye(4)):
+        if gt_keypoints is None:
+            from egorelight_cli.stages.ik_eval import fitted_keypoints
+
+            xyz = gt_motion.fitted_keypoints if gt_motion.fitted_keypoints is not None else \
+                fitted_keypoints(character, gt_motion.theta)
+            gt_keypoints = Keypoints(xyz, np.ones(xyz.shape[:2]), gt_motion.frame_ids, character.keypoint_names)
+        gt_keypoints = dataclasses.replace(gt_keypoints, xyz=transform_points(T, gt_keypoints.xyz))
+        gt_motion = None
+    return gt_keypoints, gt_motion, truth_frame_note(calibration, sequence), artifact
 
 
 def load_gt(path: Path, character: Character) -> tuple[Keypoints | None, Motion | None, list[Artifact], list[Path]]:
@@ -201,7 +235,8 @@ class IKCommands:
 
     run: StageRun
 
-    def ik(self, input_path: Path, character_spec: str, model_path: Path | None, gt_path: Path | None, out: Path) -> Path:
+    def ik(self, input_path: Path, character_spec: str, model_path: Path | None, gt_path: Path | None,
+           calibration_path: Path | None, out: Path) -> Path:
         from egorelight_cli.stages.character_commands import load_character
 
         cfg = self.run.config()
@@ -220,6 +255,11 @@ class IKCommands:
             gt_keypoints, gt_motion, gt_artifacts, gt_sources = load_gt(gt_path, character)
             inputs += gt_artifacts
             sources += gt_sources
+        gt_frame = None
+        if calibration_path is not None:
+            gt_keypoints, gt_motion, gt_frame, calibration_artifact = _gt_in_pose_frame(
+                calibration_path, gt_path, character, gt_keypoints, gt_motion)
+            inputs.append(calibration_artifact)
         if source.keypoints is not None:
             from egorelight_cli.stages.ik import check_keypoints_for
 
@@ -240,6 +280,8 @@ class IKCommands:
             writer.metrics["input"] = source.info.get("source")
             if gt_keypoints is not None or gt_motion is not None:
                 writer.metrics.update(gt_metrics(character, result, gt_keypoints, gt_motion))
+                if gt_frame is not None:
+                    writer.metrics["groundtruth_frame"] = gt_frame
             writer.runtime["solver"] = result.solver
             if not writer.single_file:
                 _write_preview(writer, character, result, source.keypoints, cfg)
@@ -289,5 +331,6 @@ def train_command(run: StageRun, motions: tuple[Path, ...], character: str, out:
     return IKCommands(run).train(motions, character, out)
 
 
-def ik_command(run: StageRun, input: Path, character: str, model: Path | None, gt: Path | None, out: Path) -> Path:
-    return IKCommands(run).ik(input, character, model, gt, out)
+def ik_command(run: StageRun, input: Path, character: str, model: Path | None, gt: Path | None,
+               calibration: Path | None, out: Path) -> Path:
+    return IKCommands(run).ik(input, character, model, gt, calibration, out)
