@@ -114,4 +114,7 @@ def merged_metrics(root, manifests: list[dict]) -> dict:
     rows, _ = read_npz(Path(root) / SCORES_NPZ, check_finite=False)
     cloud = read_pointcloud_npz(Path(root) / POINTCLOUD_PAYLOAD)
     first = manifests[0]["metrics"]
-    return run_metrics(rows, cloud.valid, first["method"], first["sequence"])
+    metrics = run_metrics(rows, cloud.valid, first["method"], first["sequence"])
+    if "groundtruth_frame" in first:  # the same in every shard
+        metrics["groundtruth_frame"] = first["groundtruth_frame"]
+    return metrics

@@ -84,6 +84,7 @@ def merged_metrics(root, manifests: list[dict]) -> dict:
     keypoints = read_keypoints_npz(Path(root) / KEYPOINTS_PAYLOAD)
     first = manifests[0]["metrics"]
     metrics = {"head_poses": first["head_poses"], **egopose_metrics(scores, keypoints.confidence)}
-    if "groundtruth_not_scored" in first:
-        metrics["groundtruth_not_scored"] = first["groundtruth_not_scored"]
+    for key in ("groundtruth_not_scored", "groundtruth_frame"):  # the same in every shard
+        if key in first:
+            metrics[key] = first[key]
     return metrics
