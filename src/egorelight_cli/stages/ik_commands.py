@@ -120,11 +120,9 @@ def _gt_in_pose_frame(calibration_path: Path, gt_path: Path | None, character: C
     T = T_pose_frame_from_truth_world(root, calibration, sequence)
     if not np.array_equal(T, np.eye(4)):
         if gt_keypoints is None:
-            from egorelight_cli.stages.ik_eval import fitted_keypoints
+            from egorelight_cli.stages.ik_eval import motion_keypoints
 
-            xyz = gt_motion.fitted_keypoints if gt_motion.fitted_keypoints is not None else \
-                fitted_keypoints(character, gt_motion.theta)
-            gt_keypoints = Keypoints(xyz, np.ones(xyz.shape[:2]), gt_motion.frame_ids, character.keypoint_names)
+            gt_keypoints = motion_keypoints(character, gt_motion)
         gt_keypoints = dataclasses.replace(gt_keypoints, xyz=transform_points(T, gt_keypoints.xyz))
         gt_motion = None
     return gt_keypoints, gt_motion, truth_frame_note(calibration, sequence), artifact

@@ -28,6 +28,14 @@ def fitted_keypoints(character: Character, theta: np.ndarray, chunk: int = 512) 
     return torch.cat(out).numpy() if out else np.zeros((0, len(character.keypoint_names), 3))
 
 
+def motion_keypoints(character: Character, motion: Motion, rows=slice(None)) -> Keypoints:
+    """The keypoints of ``motion``'s frames ``rows`` (confidence 1): its stored fitted keypoints,
+    else FK of its theta on ``character``."""
+    xyz = (motion.fitted_keypoints[rows] if motion.fitted_keypoints is not None
+           else fitted_keypoints(character, motion.theta[rows].astype(np.float64)))
+    return Keypoints(xyz, np.ones(xyz.shape[:2]), motion.frame_ids[rows], character.keypoint_names)
+
+
 # ------------------------------------------------------------------------------------ metrics
 def _mpjpe_cm(distance_m: np.ndarray, part: slice) -> float | None:
     value = mean_distance_cm(distance_m[:, part])
@@ -88,9 +96,7 @@ def gt_metrics(character: Character, result: IKResult, gt_keypoints: Keypoints |
         if len(trans):
             metrics["gt_root_translation_error_cm"] = float(100 * np.linalg.norm(diff[:, trans], axis=1).mean())
         if gt_keypoints is None:
-            xyz = (gt_motion.fitted_keypoints[theirs] if gt_motion.fitted_keypoints is not None
-                   else fitted_keypoints(character, gt_theta))
-            gt_keypoints = Keypoints(xyz, np.ones(xyz.shape[:2]), ids, character.keypoint_names)
+            gt_keypoints = motion_keypoints(character, gt_motion, theirs)
     if gt_keypoints is not None:
         ids, ours, theirs = np.intersect1d(result.frame_ids, gt_keypoints.frame_ids, return_indices=True)
         if len(ids) == 0:
