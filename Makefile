@@ -244,11 +244,33 @@ $(ANIMATE_STUDENT): $(ANIMATE_MODEL) $(SUBJECT)/motion_mocap/$(ANIMATE_STUDENT_S
 		--seq $(ANIMATE_STUDENT_SEQ) --motion $(SUBJECT)/motion_mocap/$(ANIMATE_STUDENT_SEQ) \
 		--character $(SUBJECT)/character --out $(SUBJECT)/models/animate_student
 
+# the depth-conditioned avatar of a sequence: $(1) motion, $(2) sequence, $(3) output
+ANIMATE_OF = $(EGO) $(EGOFLAGS) animate --motion $(1) --pointcloud $(SUBJECT)/pointcloud/$(2) \
+	--model $(SUBJECT)/models/animate --character $(SUBJECT)/character --capture $(SUBJECT)/capture \
+	--seq $(2) --calibration $(SUBJECT)/calibration --out $(3)
+
 $(SUBJECT)/meshes/%/manifest.json: $(SUBJECT)/motion/%/manifest.json $(SUBJECT)/pointcloud/%/manifest.json \
 		$(ANIMATE_MODEL) $(CHARACTER) $(CALIBRATION)
-	$(EGO) $(EGOFLAGS) animate --motion $(SUBJECT)/motion/$* --pointcloud $(SUBJECT)/pointcloud/$* \
-		--model $(SUBJECT)/models/animate --character $(SUBJECT)/character --capture $(SUBJECT)/capture \
-		--seq $* --calibration $(SUBJECT)/calibration --out $(SUBJECT)/meshes/$*
+	$(call ANIMATE_OF,$(SUBJECT)/motion/$*,$*,$(SUBJECT)/meshes/$*)
+
+# make animate-truth (issue 21, evaluation only): the same model on SEQ's point cloud under the true
+# motion, two ways. `ik`: the pipeline's own IK of the true keypoints (motion_truth), the best motion
+# the headset pipeline can hand the avatar. `dofs`: the simulator's DoFs themselves
+# (capture/groundtruth/SEQ/motion.npz); the fitted character's keypoints sit 1-3 cm from the
+# subject's, so no IK of keypoints returns these DoFs and the network, trained on IK motions, never saw
+# such input. Each row: full / --no-depth / skinning, whole body and ego-visible surface.
+$(SUBJECT)/animate_truth/%/ik/manifest.json: $(SUBJECT)/motion_truth/%/manifest.json \
+		$(SUBJECT)/pointcloud/%/manifest.json $(ANIMATE_MODEL) $(CHARACTER) $(CALIBRATION)
+	$(call ANIMATE_OF,$(SUBJECT)/motion_truth/$*,$*,$(SUBJECT)/animate_truth/$*/ik)
+
+$(SUBJECT)/animate_truth/%/dofs/manifest.json: $(SUBJECT)/pointcloud/%/manifest.json $(ANIMATE_MODEL) \
+		$(CHARACTER) $(CALIBRATION)
+	$(call ANIMATE_OF,$(SUBJECT)/capture/groundtruth/$*/motion.npz,$*,$(SUBJECT)/animate_truth/$*/dofs)
+
+.PHONY: animate-truth
+animate-truth: $(SUBJECT)/meshes/$(SEQ)/manifest.json \
+		$(foreach m,ik dofs,$(SUBJECT)/animate_truth/$(SEQ)/$(m)/manifest.json)
+	@$(BIN)/python -m egorelight_cli.report.table --keys full_p2s_cm,no_depth_p2s_cm,skinning_p2s_cm,full_p2s_ego_visible_cm,no_depth_p2s_ego_visible_cm,skinning_p2s_ego_visible_cm $^
 
 # ---------------------------------------------------------------- geolift (Sec. geometry lifting)
 # meshes_student/<seq>: the depth-agnostic student driven by the studio's mocap (the appearance
