@@ -376,6 +376,38 @@ def test_max_frames_trains_on_an_evenly_spaced_subset(tiny_capture, oracle_calib
     assert result.info["training_frames"] == 2
 
 
+def test_background_swap_keeps_every_projected_keypoint_and_trains(tiny_capture, oracle_calibration):
+    """``train.augment.background``: the kept region of each training view holds every mocap
+    keypoint that projects into it and leaves background to swap; training runs with it; off, no
+    mask is built."""
+    from egorelight_cli.config import resolve_config
+    from egorelight_cli.io.capture import Capture
+    from egorelight_cli.io.keypoints import read_keypoints_npz
+    from egorelight_cli.stages.egopose import EgoPoseSettings, load_frames, make_targets, rig_geometry, train_egopose
+    from egorelight_cli.stages.egopose_augment import keep_masks
+
+    capture = Capture(tiny_capture)
+    frames = load_frames(capture, oracle_calibration, "ego_train", 32, only_content=True)
+    frames = frames.select(np.nonzero(frames.usable)[0])
+    mocap = read_keypoints_npz(capture.sequence("ego_train").mocap_path())
+    rig = rig_geometry(capture, oracle_calibration)
+    target = make_targets(frames, mocap, rig)
+    small = ("train.steps=2", "train.temporal.steps=1", "train.batch=2", "net.channels=8")
+    off = EgoPoseSettings(resolve_config("egopose", "tiny", small))
+    assert keep_masks(frames.images, target.hmd, rig, off) is None
+    on = EgoPoseSettings(resolve_config("egopose", "tiny", small + ("train.augment.background=0.5",)))
+    keep = keep_masks(frames.images, target.hmd, rig, on)
+    h, w = frames.images.shape[-2:]
+    assert keep.shape == (len(frames.frame_ids), rig.K.shape[0], h, w)
+    px = np.floor(target.pixels.numpy() * (w / rig.width) + 0.5).astype(int).clip(0, w - 1)
+    n, v, j = np.nonzero(target.inside.numpy())
+    assert len(n) > 0 and (keep.numpy()[n, v, px[n, v, j, 1], px[n, v, j, 0]] == 1.0).all()
+    assert 0.05 < float(keep.mean()) < 0.9
+    result = train_egopose(frames, mocap, rig, on)
+    losses = [row["loss"] for row in result.curve if "loss" in row]
+    assert losses and np.isfinite(losses).all()
+
+
 def test_default_training_sequence_is_the_largest_ego_train_sequence(tiny_capture, tmp_path):
     from egorelight_cli.io.capture import Capture
     from egorelight_cli.stages.egopose_commands import default_training_sequence

@@ -51,6 +51,7 @@ from egorelight_cli.geometry.rotations import invert_rigid
 from egorelight_cli.structures.calibration import Calibration, HeadPoses
 from egorelight_cli.io.capture import Capture, SequenceInfo
 from egorelight_cli.structures.keypoints import Keypoints
+from egorelight_cli.stages.egopose_augment import jitter_images, keep_masks, occlude_and_noise, swap_background
 from egorelight_cli.nn.egopose_net import (EgoPoseNet, RigGeometry, heading_frame, project_keypoints,
                                            range_log_init, transform, windows)
 from egorelight_cli.structures.keypoints import BODY_SLICE, HANDS_SLICE, KEYPOINT_NAMES, NUM_KEYPOINTS
@@ -292,43 +293,6 @@ def frame_losses(out: dict[str, torch.Tensor], target: Targets, rows: torch.Tens
             "fused3d_m": fused.detach()}
 
 
-def jitter_images(images: torch.Tensor, settings: EgoPoseSettings, generator: torch.Generator,
-                  enabled: bool) -> torch.Tensor:
-    """(B,V,3,h,w) float images, each view with its own colour-jitter draw when ``enabled``,
-    then (``train.jitter.shading`` > 0) its own smooth gain field (:class:`ShadingJitter`)."""
-    if not enabled:
-        return images
-    from egorelight_cli.nn.augment import ColourJitter, ShadingJitter
-
-    j = settings.train.jitter
-    jitter = ColourJitter(float(j.brightness), float(j.contrast), float(j.saturation), float(j.hue))
-    flat = jitter(images.flatten(0, 1), generator=generator)
-    if float(j.shading) > 0:
-        flat = ShadingJitter(float(j.shading), int(j.shading_grid), float(j.shading_tint))(flat, generator=generator)
-    return flat.reshape(images.shape)
-
-
-def occlude_and_noise(images: torch.Tensor, settings: EgoPoseSettings, generator: torch.Generator) -> torch.Tensor:
-    """(B,V,3,h,w) images with, per view, a random grey rectangle (probability
-    ``train.augment.occlusion``, sides up to ``max_occluder`` of the image) and Gaussian pixel
-    noise of up to ``train.augment.noise`` (robustness to occluding hands and sensor noise)."""
-    aug = settings.train.augment
-    if float(aug.occlusion) <= 0 and float(aug.noise) <= 0:
-        return images
-    B, V, _, h, w = images.shape
-    out = images.clone()
-    draws = torch.rand(B * V, 6, generator=generator)
-    flat = out.view(B * V, 3, h, w)
-    for i, (p, sx, sy, cx, cy, shade) in enumerate(draws.tolist()):
-        if p < float(aug.occlusion):
-            rw, rh = max(1, int(sx * float(aug.max_occluder) * w)), max(1, int(sy * float(aug.max_occluder) * h))
-            x0, y0 = int(cx * (w - rw)), int(cy * (h - rh))
-            flat[i, :, y0:y0 + rh, x0:x0 + rw] = shade
-    sigma = torch.rand(B * V, 1, 1, 1, generator=generator) * float(aug.noise)
-    flat += sigma * torch.randn(flat.shape, generator=generator)
-    return out.clamp(0.0, 1.0)
-
-
 @dataclass
 class TrainResult:
     """A trained network and what describes it."""
@@ -369,6 +333,7 @@ def train_egopose(frames: EgoFrames, mocap: Keypoints, rig: RigGeometry, setting
             raise EgorelightError("--backbone-weights holds no tensor that fits the egopose encoder")
     joint_weights = settings.joint_weights()
     images = as_float_images(data.images)
+    keep = keep_masks(data.images, target.hmd, rig, settings)
     jitter_on = bool(train_cfg.colour_jitter)
     batch = int(train_cfg.batch)  # drawn with replacement; not clamped, so it stays divisible among torchrun ranks
     steps = int(train_cfg.steps)
@@ -379,7 +344,8 @@ def train_egopose(frames: EgoFrames, mocap: Keypoints, rig: RigGeometry, setting
             group["lr"] = lr * (0.3 ** ((step >= 0.7 * steps) + (step >= 0.9 * steps)))
         g = torch.Generator().manual_seed(seed * 1_000_003 + step)
         pick = torch.randint(len(rows), (batch,), generator=g)
-        x = occlude_and_noise(jitter_images(images[pick], settings, g, jitter_on), settings, g)
+        x = swap_background(images[pick], None if keep is None else keep[pick], settings, g)
+        x = occlude_and_noise(jitter_images(x, settings, g, jitter_on), settings, g)
         x, pick = rank_share(x), rank_share(pick)  # this process's share of the batch (all of it without torchrun)
         return frame_losses(net.forward_frames(x, rig), target, pick, rig, joint_weights, train_cfg.weights)
 
@@ -387,7 +353,8 @@ def train_egopose(frames: EgoFrames, mocap: Keypoints, rig: RigGeometry, setting
     ckpt = None if checkpoint_dir is None else checkpoint_dir / "frame.pt"
     curve = train(net, optimizer, step_fn, steps, checkpoint=ckpt, checkpoint_every=int(train_cfg.checkpoint_every),
                   log_every=int(train_cfg.log_every), desc="egopose per-frame")
-    curve += _train_temporal(net, images, data, target, rig, settings, joint_weights, seed, checkpoint_dir, steps)
+    curve += _train_temporal(net, images, keep, data, target, rig, settings, joint_weights, seed, checkpoint_dir,
+                             steps)
     net.eval()
     mean_pose = to_heading(target.world, data.T_world_from_hmd, target.confidence)
     net.prior_heading.copy_(torch.as_tensor(mean_pose))
@@ -459,10 +426,12 @@ def _validate(net: EgoPoseNet, frames: EgoFrames, mocap: Keypoints, rig: RigGeom
     return metrics
 
 
-def _train_temporal(net: EgoPoseNet, images: torch.Tensor, data: EgoFrames, target: Targets, rig: RigGeometry,
+def _train_temporal(net: EgoPoseNet, images: torch.Tensor, keep: torch.Tensor | None, data: EgoFrames,
+                    target: Targets, rig: RigGeometry,
                     settings: EgoPoseSettings, joint_weights: torch.Tensor, seed: int, checkpoint_dir,
                     step_offset: int) -> list[dict]:
-    """Phase 2: the temporal module on windows of frozen per-frame estimates (jittered copies)."""
+    """Phase 2: the temporal module on windows of frozen per-frame estimates (augmented copies, the
+    first one plain)."""
     from egorelight_cli.nn.distributed import rank_share
     from egorelight_cli.nn.training import train
 
@@ -478,7 +447,10 @@ def _train_temporal(net: EgoPoseNet, images: torch.Tensor, data: EgoFrames, targ
             g = torch.Generator().manual_seed(seed * 7919 + copy)
             fused = []
             for start in range(0, len(images), 8):
-                x = jitter_images(images[start:start + 8], settings, g, bool(settings.train.colour_jitter) and copy > 0)
+                x = images[start:start + 8]
+                if copy > 0:
+                    x = swap_background(x, None if keep is None else keep[start:start + 8], settings, g)
+                x = jitter_images(x, settings, g, bool(settings.train.colour_jitter) and copy > 0)
                 fused.append(net.forward_frames(x, rig)["fused_hmd"])
             copies.append(transform(H, torch.cat(fused)))
     cached = torch.stack(copies)  # (C,N,J,3) world

@@ -10,20 +10,7 @@ from egorelight_cli.geometry.cameras import project
 from egorelight_cli.io.capture import Capture
 from egorelight_cli.nn.egopose_net import RigGeometry
 from egorelight_cli.stages.egopose import DOWN_ROLES, EgoFrames, Prediction
-from egorelight_cli.structures.keypoints import FINGER_SEGMENTS, FINGERS, KEYPOINT_NAMES, Keypoints
-
-
-def keypoint_edges() -> list[tuple[int, int]]:
-    """Pairs of keypoint indices drawn as bones (body chains, each finger from the wrist)."""
-    index = {n: i for i, n in enumerate(KEYPOINT_NAMES)}
-    pairs = [("Neck", "LeftArm"), ("Neck", "RightArm"), ("LeftUpLeg", "RightUpLeg")]
-    for side in ("Left", "Right"):
-        pairs += [(f"{side}Arm", f"{side}ForeArm"), (f"{side}ForeArm", f"{side}Hand"), ("Neck", f"{side}UpLeg"),
-                  (f"{side}UpLeg", f"{side}Leg"), (f"{side}Leg", f"{side}Foot"), (f"{side}Foot", f"{side}ToeBase")]
-        for finger in FINGERS:
-            chain = [f"{side}HandWrist"] + [f"{side}Hand{finger}{s}" for s in FINGER_SEGMENTS]
-            pairs += list(zip(chain[:-1], chain[1:]))
-    return [(index[a], index[b]) for a, b in pairs]
+from egorelight_cli.structures.keypoints import Keypoints, keypoint_edges
 
 
 def _draw(image: np.ndarray, pixels: np.ndarray, colour, scale: int) -> None:

@@ -46,6 +46,20 @@ HANDS_SLICE = slice(len(BODY_KEYPOINTS), NUM_KEYPOINTS)
 LEFT_HAND_SLICE = slice(len(BODY_KEYPOINTS), len(BODY_KEYPOINTS) + 21)
 RIGHT_HAND_SLICE = slice(len(BODY_KEYPOINTS) + 21, len(BODY_KEYPOINTS) + 42)
 
+
+def keypoint_edges() -> list[tuple[int, int]]:
+    """Pairs of keypoint indices drawn as bones (body chains, each finger from the wrist)."""
+    index = {n: i for i, n in enumerate(KEYPOINT_NAMES)}
+    pairs = [("Neck", "LeftArm"), ("Neck", "RightArm"), ("LeftUpLeg", "RightUpLeg")]
+    for side in ("Left", "Right"):
+        pairs += [(f"{side}Arm", f"{side}ForeArm"), (f"{side}ForeArm", f"{side}Hand"), ("Neck", f"{side}UpLeg"),
+                  (f"{side}UpLeg", f"{side}Leg"), (f"{side}Leg", f"{side}Foot"), (f"{side}Foot", f"{side}ToeBase")]
+        for finger in FINGERS:
+            chain = [f"{side}HandWrist"] + [f"{side}Hand{finger}{s}" for s in FINGER_SEGMENTS]
+            pairs += list(zip(chain[:-1], chain[1:]))
+    return [(index[a], index[b]) for a, b in pairs]
+
+
 assert NUM_KEYPOINTS == 57
 
 KEYPOINTS_UNITS = {"xyz": "m", "confidence": "1"}
