@@ -158,3 +158,22 @@ def test_make_passes_a_per_job_share(tmp_path, args, expected):
     assert result.returncode == 0, result.stderr
     line = next(row for row in result.stdout.splitlines() if "character default" in row)
     assert ("--threads" not in line) if expected is None else (f"--threads {expected} " in line)
+
+
+def test_single_threaded_openmp_limits_every_loaded_openmp_runtime():
+    """synth's pymeshlab filters run on one OpenMP thread, whichever runtime pymeshlab bound to (its
+    own libgomp, or torch's when torch came first), and the setting comes back after."""
+    import pymeshlab  # noqa: F401  (loads or binds its OpenMP runtime)
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    from egorelight_cli.runtime import single_threaded_openmp
+
+    def openmp() -> dict[str, int]:
+        return {d["filepath"]: d["num_threads"] for d in threadpool_info() if d["user_api"] == "openmp"}
+
+    with threadpool_limits(limits=2, user_api="openmp"):
+        before = openmp()
+        assert before and set(before.values()) == {2}
+        with single_threaded_openmp():
+            assert set(openmp().values()) == {1}
+        assert openmp() == before

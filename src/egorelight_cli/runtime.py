@@ -148,6 +148,19 @@ def apply_threads(n: int) -> int:
     return n
 
 
+@contextmanager
+def single_threaded_openmp() -> Iterator[None]:
+    """One thread in every OpenMP runtime loaded by now, inside the block, whichever one pymeshlab
+    uses (the libgomp it ships, out of :func:`apply_threads`' reach when loaded later, or torch's
+    under ``--threads``). One thread gives its filters one result whatever the thread count and
+    the machine's load: synth's scan, remeshed under ``--threads 2`` while four processes shared
+    two cores, once came out different from the ``--threads 1`` run."""
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(limits=1, user_api="openmp"):
+        yield
+
+
 @functools.lru_cache(maxsize=1)
 def _blas_controller() -> "threadpoolctl.ThreadpoolController":  # noqa: F821
     import scipy.linalg  # noqa: F401  (its OpenBLAS is one of the libraries to control)

@@ -21,6 +21,7 @@ from egorelight_cli.geometry.cameras import Camera
 from egorelight_cli.geometry.raycast import RayCaster
 from egorelight_cli.io.keypoints import Keypoints
 from egorelight_cli.render.raster import face_normals, vertex_normals
+from egorelight_cli.runtime import single_threaded_openmp
 from egorelight_cli.structures.keypoints import BODY_SLICE
 from egorelight_cli.synth.appearance import value_noise
 
@@ -84,8 +85,10 @@ def reconstruct(vertices: np.ndarray, faces: np.ndarray, keep: np.ndarray, rng: 
     ms.add_mesh(pymeshlab.Mesh(vertex_matrix=np.asarray(vertices[used], np.float64),
                                face_matrix=inverse.reshape(-1, 3).astype(np.int32)))
     target = max(int(len(sub) * cfg.decimate_ratio), 100)
-    ms.meshing_decimation_quadric_edge_collapse(targetfacenum=target, preservetopology=False, preserveboundary=True)
-    ms.apply_coord_taubin_smoothing(stepsmoothnum=int(cfg.smooth_steps))
+    with single_threaded_openmp():
+        ms.meshing_decimation_quadric_edge_collapse(targetfacenum=target, preservetopology=False,
+                                                    preserveboundary=True)
+        ms.apply_coord_taubin_smoothing(stepsmoothnum=int(cfg.smooth_steps))
     mesh = ms.current_mesh()
     v = np.asarray(mesh.vertex_matrix(), np.float64)
     f = np.asarray(mesh.face_matrix(), np.int64)

@@ -18,6 +18,7 @@ from __future__ import annotations
 import numpy as np
 
 from egorelight_cli.geometry.normals import vertex_normals
+from egorelight_cli.runtime import single_threaded_openmp
 from egorelight_cli.synth.appearance import value_noise
 from egorelight_cli.synth.subject import Subject
 
@@ -28,8 +29,10 @@ def isotropic_remesh(vertices: np.ndarray, faces: np.ndarray, edge_m: float, ite
 
     ms = pymeshlab.MeshSet()
     ms.add_mesh(pymeshlab.Mesh(vertex_matrix=np.asarray(vertices, np.float64), face_matrix=np.asarray(faces, np.int32)))
-    ms.meshing_merge_close_vertices(threshold=pymeshlab.PureValue(1e-5))
-    ms.meshing_isotropic_explicit_remeshing(iterations=int(iterations), targetlen=pymeshlab.PureValue(float(edge_m)))
+    with single_threaded_openmp():
+        ms.meshing_merge_close_vertices(threshold=pymeshlab.PureValue(1e-5))
+        ms.meshing_isotropic_explicit_remeshing(iterations=int(iterations),
+                                                targetlen=pymeshlab.PureValue(float(edge_m)))
     mesh = ms.current_mesh()
     return mesh.vertex_matrix().astype(np.float64), mesh.face_matrix().astype(np.int64)
 
