@@ -29,7 +29,7 @@ def test_body_mask_covers_the_bones_and_leaves_the_far_background():
     pixels = _skeleton_pixels()[None, None]  # (1,1,J,2)
     ranges = np.full(pixels.shape[:3], 0.5)
     mask = body_masks(pixels, ranges, np.array([40.0]), 1.0, (64, 64), 0.05, 0.0)[0, 0]
-    assert mask.shape == (64, 64) and set(np.unique(mask)) <= {0.0, 1.0}
+    assert mask.shape == (64, 64) and mask.dtype == np.uint8 and set(np.unique(mask)) <= {0, 1}
     p = pixels[0, 0]
     for a, b in keypoint_edges():
         if np.isfinite(p[[a, b]]).all():
@@ -86,6 +86,16 @@ def test_background_swap_keeps_the_body_and_replaces_the_rest(probability):
     else:
         assert (outside - 0.25).abs().amax(dim=(2, 3, 4)).min() > 0.05  # every view got a texture
         assert float(out.min()) >= 0.0 and float(out.max()) <= 1.0
+
+
+def test_background_swap_takes_the_drawn_uint8_masks():
+    images = torch.rand(1, 2, 3, 16, 16, generator=torch.Generator().manual_seed(5))
+    keep = torch.zeros(1, 2, 16, 16, dtype=torch.uint8)
+    keep[..., 4:12, 4:12] = 1
+    g = torch.Generator().manual_seed(6)
+    out = BackgroundSwap(1.0, octaves=1, feather_px=0)(images, keep, g)
+    torch.testing.assert_close(out[..., 4:12, 4:12], images[..., 4:12, 4:12])
+    assert not torch.allclose(out[..., :4, :], images[..., :4, :])
 
 
 def test_background_swap_draws_per_view():

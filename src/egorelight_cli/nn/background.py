@@ -17,7 +17,8 @@ corners included: it tells nothing about the pose):
 * :class:`BackgroundSwap`: per view, with some probability, blends the image with a random
   multi-octave value-noise texture of random colours outside the (softened) kept region.
 
-Shapes: images (B,V,3,h,w) float in [0,1]; masks (N,V,h,w) float in [0,1], 1 = keep.
+Shapes: images (B,V,3,h,w) float in [0,1]; masks (N,V,h,w), 1 = keep (uint8 0/1 as drawn, a third of
+the memory of the uint8 images they mask; any float in [0,1] for the swap).
 """
 
 from __future__ import annotations
@@ -47,7 +48,7 @@ def body_masks(pixels: np.ndarray, ranges: np.ndarray, focal_px: np.ndarray, sca
         limb_radius_m: half the thickness of a limb, metres (the torso is twice as thick).
         margin_px: extra dilation, mask pixels.
     Returns:
-        (N,V,h,w) float32, 1 on the body.
+        (N,V,h,w) uint8, 1 on the body.
     """
     N, V, J, _ = pixels.shape
     h, w = size
@@ -64,13 +65,13 @@ def body_masks(pixels: np.ndarray, ranges: np.ndarray, focal_px: np.ndarray, sca
                 cv2.fillPoly(canvas, [np.round(p[list(TORSO)]).astype(np.int32)], 1)
             for a, b in edges:
                 if ok[a] and ok[b]:
-                    diameter = (r[a] + r[b]) * (2.0 if a in TORSO and b in TORSO else 1.0)  # mean of the ends
+                    diameter = (r[a] + r[b]) * (2.0 if a in TORSO and b in TORSO else 1.0)  # 2 x mean radius
                     thick = diameter + 2 * margin_px
                     cv2.line(canvas, tuple(int(c) for c in np.round(p[a])), tuple(int(c) for c in np.round(p[b])), 1,
                              max(int(round(thick)), 1))
             for j in np.nonzero(ok)[0]:
                 cv2.circle(canvas, tuple(int(c) for c in np.round(p[j])), max(int(round(r[j] + margin_px)), 1), 1, -1)
-    return out.astype(np.float32)
+    return out
 
 
 def value_noise(batch: int, height: int, width: int, octaves: int, generator: torch.Generator) -> torch.Tensor:
@@ -106,7 +107,7 @@ class BackgroundSwap:
     feather_px: int = 3
 
     def __call__(self, images: torch.Tensor, keep: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
-        """images (B,V,3,h,w) in [0,1], keep (B,V,h,w) in [0,1] -> images with swapped backgrounds."""
+        """images (B,V,3,h,w) in [0,1], keep (B,V,h,w) 0..1 (any dtype) -> images with swapped backgrounds."""
         if float(self.probability) <= 0:
             return images
         B, V, _, h, w = images.shape

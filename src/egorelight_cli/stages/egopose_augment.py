@@ -25,7 +25,7 @@ if TYPE_CHECKING:
 
 def keep_masks(images: torch.Tensor, keypoints_hmd: torch.Tensor, rig: RigGeometry,
                settings: "EgoPoseSettings") -> torch.Tensor | None:
-    """(N,V,h,w) float in [0,1]: what a background swap keeps of each training view, the body
+    """(N,V,h,w) uint8 0/1: what a background swap keeps of each training view, the body
     around the mocap keypoints ``keypoints_hmd`` (N,J,3) HMD frame, metres
     (:func:`~egorelight_cli.nn.background.body_masks`); None when ``train.augment.background`` is 0.
 
