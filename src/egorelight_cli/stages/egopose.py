@@ -14,9 +14,11 @@ holds what is around it, callable without the CLI:
   (``train.hand_weight``). Colour jitter in brightness, contrast, saturation and hue
   (``train.colour_jitter``) is the paper's key finding: it is what makes the estimator survive the
   unseen test lighting. A smooth random gain field per view (``train.jitter.shading``, not in the
-  paper) re-shades the flat-lit training images as if lit from one side. Phase 2 fits the temporal
-  module on windows of the frozen per-frame estimates of several jittered copies of the training
-  frames (plus noise). Both phases checkpoint and resume
+  paper) re-shades the flat-lit training images as if lit from one side, and random texture replaces
+  the lightstage dome behind the body (``train.augment.background``, not in the paper;
+  :mod:`egorelight_cli.stages.egopose_augment`) so another room's floor is no surprise. Phase 2
+  fits the temporal module on windows of the frozen per-frame estimates of several augmented copies
+  of the training frames (plus noise). Both phases checkpoint and resume
   (:func:`egorelight_cli.nn.training.train`). The last ``train.validation_fraction`` of the frames
   (a contiguous block, so no near-duplicates of training frames) is held out: its first half fits,
   per joint, how much to trust the estimate over the training mean pose (``train.prior_blend``),
