@@ -394,9 +394,10 @@ def test_background_swap_keeps_every_projected_keypoint_and_trains(tiny_capture,
     target = make_targets(frames, mocap, rig)
     small = ("train.steps=2", "train.temporal.steps=1", "train.batch=2", "net.channels=8")
     off = EgoPoseSettings(resolve_config("egopose", "tiny", small))
-    assert keep_masks(frames.images, target.hmd, rig, off) is None
+    size = tuple(frames.images.shape[-2:])
+    assert keep_masks(target, size, rig, off) is None
     on = EgoPoseSettings(resolve_config("egopose", "tiny", small + ("train.augment.background=0.5",)))
-    keep = keep_masks(frames.images, target.hmd, rig, on)
+    keep = keep_masks(target, size, rig, on)
     h, w = frames.images.shape[-2:]
     assert keep.shape == (len(frames.frame_ids), rig.K.shape[0], h, w)
     px = np.floor(target.pixels.numpy() * (w / rig.width) + 0.5).astype(int).clip(0, w - 1)

@@ -249,8 +249,9 @@ def as_float_images(images: torch.Tensor) -> torch.Tensor:
 class Targets:
     """Mocap supervision of N training frames (rows of the training :class:`EgoFrames`).
 
-    ``world`` (N,J,3), ``hmd`` (N,J,3), ``confidence`` (N,J), per view ``pixels`` (N,V,J,2),
-    ``inside`` (N,V,J) bool, ``ranges`` (N,V,J) metres.
+    ``world`` (N,J,3), ``hmd`` (N,J,3), ``confidence`` (N,J), per view ``pixels`` (N,V,J,2) (0 where
+    a keypoint does not project), ``inside`` (N,V,J) bool, ``ranges`` (N,V,J) metres and
+    ``projects`` (N,V,J) bool (the keypoint has a pixel, in the image or not).
     """
 
     world: torch.Tensor
@@ -259,6 +260,7 @@ class Targets:
     pixels: torch.Tensor
     inside: torch.Tensor
     ranges: torch.Tensor
+    projects: torch.Tensor
 
 
 def make_targets(frames: EgoFrames, mocap: Keypoints, rig: RigGeometry) -> Targets:
@@ -274,7 +276,8 @@ def make_targets(frames: EgoFrames, mocap: Keypoints, rig: RigGeometry) -> Targe
     cam = transform(rig.T_cam_from_hmd[None], hmd[:, None].expand(-1, rig.K.shape[0], -1, -1))
     pixels, inside = project_keypoints(cam, rig)
     inside = inside & (conf[:, None] > 0)
-    return Targets(world, hmd, conf, torch.nan_to_num(pixels), inside, torch.linalg.vector_norm(cam, dim=-1))
+    return Targets(world, hmd, conf, torch.nan_to_num(pixels), inside, torch.linalg.vector_norm(cam, dim=-1),
+                   torch.isfinite(pixels).all(-1))
 
 
 def frame_losses(out: dict[str, torch.Tensor], target: Targets, rows: torch.Tensor, rig: RigGeometry,
@@ -335,7 +338,7 @@ def train_egopose(frames: EgoFrames, mocap: Keypoints, rig: RigGeometry, setting
             raise EgorelightError("--backbone-weights holds no tensor that fits the egopose encoder")
     joint_weights = settings.joint_weights()
     images = as_float_images(data.images)
-    keep = keep_masks(data.images, target.hmd, rig, settings)
+    keep = keep_masks(target, tuple(data.images.shape[-2:]), rig, settings)
     jitter_on = bool(train_cfg.colour_jitter)
     batch = int(train_cfg.batch)  # drawn with replacement; not clamped, so it stays divisible among torchrun ranks
     steps = int(train_cfg.steps)

@@ -17,30 +17,26 @@ from typing import TYPE_CHECKING
 
 import torch
 
-from egorelight_cli.nn.egopose_net import RigGeometry, project_keypoints, transform
+from egorelight_cli.nn.egopose_net import RigGeometry
 
 if TYPE_CHECKING:
-    from egorelight_cli.stages.egopose import EgoPoseSettings
+    from egorelight_cli.stages.egopose import EgoPoseSettings, Targets
 
 
-def keep_masks(images: torch.Tensor, keypoints_hmd: torch.Tensor, rig: RigGeometry,
+def keep_masks(target: "Targets", size: tuple[int, int], rig: RigGeometry,
                settings: "EgoPoseSettings") -> torch.Tensor | None:
-    """(N,V,h,w) uint8 0/1: what a background swap keeps of each training view, the body
-    around the mocap keypoints ``keypoints_hmd`` (N,J,3) HMD frame, metres
-    (:func:`~egorelight_cli.nn.background.body_masks`); None when ``train.augment.background`` is 0.
-
-    ``images``: (N,V,3,h,w) uint8 at the network input size."""
+    """(N,V,h,w) uint8 0/1 at the network input ``size`` (h, w): what a background swap keeps of
+    each training view, the body around the mocap keypoints as ``target`` projects them
+    (:func:`~egorelight_cli.nn.background.body_masks`); None when ``train.augment.background`` is 0."""
     from egorelight_cli.nn.background import body_masks
 
     aug = settings.train.augment
     if float(aug.background) <= 0:
         return None
-    V = rig.K.shape[0]
-    h, w = images.shape[-2:]
-    cam = transform(rig.T_cam_from_hmd[None], keypoints_hmd[:, None].expand(-1, V, -1, -1))
-    pixels, _ = project_keypoints(cam, rig)
-    body = body_masks(pixels.numpy(), torch.linalg.vector_norm(cam, dim=-1).numpy(), rig.K[:, 0, 0].numpy(),
-                      w / rig.width, (h, w), float(aug.limb_radius_m), float(aug.body_margin_px))
+    h, w = size
+    pixels = torch.where(target.projects[..., None], target.pixels, torch.nan)
+    body = body_masks(pixels.numpy(), target.ranges.numpy(), rig.K[:, 0, 0].numpy(), w / rig.width, (h, w),
+                      float(aug.limb_radius_m), float(aug.body_margin_px))
     return torch.as_tensor(body)
 
 
