@@ -142,3 +142,65 @@ def test_irradiance_scaled_specular_is_dark_without_light():
         assert (float(unlit.max()) > 0) == dark_specular, scale  # the paper's head glows in the dark
     with pytest.raises(Exception, match="specular_scale"):
         RelightModel(4, 2, 1, 3, 1, specular_scale="bogus")
+
+
+def _flat_lit_frame(n: int = 8, seed: int = 0):
+    """A frame of n x n covered texels whose flat-lit texture, shadow map and irradiance are random."""
+    from egorelight_cli.stages.relight import RelightFrame
+
+    generator = torch.Generator().manual_seed(seed)
+    maps = torch.rand(10, n, n, generator=generator) + 0.1
+    texels = maps.permute(1, 2, 0).reshape(-1, 10)
+    flat = np.pi * texels[:, 3:4]  # the flat light's irradiance pi rho s_flat (s_flat 1)
+    lambert = texels[:, 0:3] * texels[:, 7:10] / flat
+    return RelightFrame(maps, _grid_points(n).reshape(-1, 3).float(), torch.full((n * n,), 0.01), np.ones((1, 3)),
+                        np.zeros((3, 3)), np.zeros(n * n, bool), lambert, flat)
+
+
+@pytest.mark.parametrize("albedo", ["lambert", "gain", "texture"])
+def test_learned_albedo_starts_at_the_lambert_relighting_and_stays_linear_in_the_light(albedo):
+    from egorelight_cli.stages.relight import RelightModel, mean_albedo, relit_avatar, relit_frame
+
+    n = 8
+    frame, coverage = _flat_lit_frame(n), torch.ones(n, n, dtype=torch.bool)
+    rays, valid = torch.rand(4, 4, 3, 6), torch.ones(4, 4, 3, dtype=torch.bool)
+    torch.manual_seed(0)
+    model = RelightModel(4, 2, 1, 3, 1, albedo=albedo, uv_resolution=n)
+    model.start_albedo(mean_albedo([frame], coverage), coverage)  # one frame: its own albedo
+    with torch.no_grad():
+        torch.testing.assert_close(relit_avatar(model, frame, coverage, rays, valid).diffuse, frame.lambert)
+        if model.albedo_map is not None:  # as if trained: the learned map moves away from the start
+            model.albedo_map.add_(0.3 * torch.randn(3, n, n))
+        chi = frame.maps[7:10].permute(1, 2, 0).reshape(-1, 3)
+        once = relit_avatar(model, relit_frame(frame, coverage, chi), coverage, rays, valid).diffuse
+        twice = relit_avatar(model, relit_frame(frame, coverage, 2.0 * chi), coverage, rays, valid).diffuse
+    torch.testing.assert_close(twice, 2.0 * once)  # the learned maps do not depend on the light
+    assert torch.allclose(once, frame.lambert) == (albedo == "lambert")
+
+
+def test_mean_albedo_is_the_median_over_frames():
+    from egorelight_cli.stages.relight import mean_albedo
+
+    coverage = torch.ones(8, 8, dtype=torch.bool)
+    frames = [_flat_lit_frame(seed=s) for s in range(3)]
+    albedos = torch.stack([f.maps[0:3].permute(1, 2, 0).reshape(-1, 3) / f.flat_irradiance for f in frames])
+    torch.testing.assert_close(mean_albedo(frames, coverage), albedos.median(dim=0).values)
+    torch.testing.assert_close(mean_albedo(frames[:1], coverage) * frames[0].maps[7:10].permute(1, 2, 0).reshape(-1, 3),
+                               frames[0].lambert)
+
+
+def test_learned_albedo_round_trips_through_the_architecture_and_checks_its_settings():
+    from egorelight_cli.stages.relight import RelightModel
+
+    model = RelightModel(4, 2, 1, 3, 1, albedo="gain", uv_resolution=8)
+    with torch.no_grad():
+        model.albedo_map.normal_()
+    loaded = RelightModel.from_architecture(model.architecture())
+    loaded.load_state_dict(model.state_dict())
+    torch.testing.assert_close(loaded.albedo_map, model.albedo_map)
+    old = {k: v for k, v in model.architecture().items() if k not in ("albedo", "uv_resolution")}
+    assert RelightModel.from_architecture(old).albedo_map is None  # a model saved before the option: Lambert
+    with pytest.raises(Exception, match="net.albedo must be one of"):
+        RelightModel(4, 2, 1, 3, 1, albedo="bogus", uv_resolution=8)
+    with pytest.raises(Exception, match="needs net.uv_resolution"):
+        RelightModel(4, 2, 1, 3, 1, albedo="texture")

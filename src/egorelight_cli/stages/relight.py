@@ -15,7 +15,10 @@ under the frame's lighting) and the tracked mesh's texel points feed
 
 ``net.diffuse_gain: false`` keeps ``c_diff`` at the Lambert relighting (DiffuseNet then shapes the
 Gaussians only): with a few hundred steps on a dozen training lights the learned gain did not
-carry over to unseen lighting (cpu demo, ``stages/relight.yaml``).
+carry over to unseen lighting (cpu demo, ``stages/relight.yaml``). ``net.albedo`` (ours,
+:data:`ALBEDO_SOURCES`) lets the avatar learn the albedo of that relighting from the lightstage
+views instead of taking GeoLift's headset texture as it is: a free UV map that does not depend on
+the light, so ``c_diff`` stays linear in it.
 
 The Gaussians are rendered (``render/gaussians.py``) with ``c_diff + c_spec`` and, as a pass,
 ``c_diff`` alone. Loss: ``w_l1 L1 + w_ssim (1 - SSIM) + w_reg L_reg + w_diffuse L1(diffuse pass)
@@ -64,6 +67,15 @@ LOSS_WEIGHTS = {"l1": 1.0, "ssim": 10.0, "reg": 1.0, "diffuse": 1.0, "l2": 0.0}
 #: the specular colour scales with the light that makes it (one light or a dim map gives a dim highlight)
 SPECULAR_SCALES = ("none", "irradiance")
 
+#: where the diffuse colour's albedo comes from (ours; the paper's DiffuseNet predicts ``c_diff``):
+#: ``lambert`` GeoLift's flat-lit texture of the frame (``c_diff`` is the Lambert relighting);
+#: ``gain`` that relighting times a learned per-texel gain ``exp(g)`` (a free UV map, zero at the
+#: start: an untrained model renders the Lambert baseline); ``texture`` a learned per-texel albedo
+#: ``exp(t)`` times the frame's irradiance ``chi``, started at the training frames' mean albedo
+#: (:func:`mean_albedo`). The learned maps do not depend on the light, so the diffuse colour stays
+#: linear in it and carries over to unseen lighting (``diffuse_gain``, a function of ``chi``, did not).
+ALBEDO_SOURCES = ("lambert", "gain", "texture")
+
 
 def ray_irradiance(rays: torch.Tensor, valid: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
     """(3,H,W) irradiance of the selected rays of each texel: the sum over the r rays of their
@@ -77,15 +89,44 @@ class RelightModel(nn.Module):
     """DiffuseNet + SpecularNet of one avatar."""
 
     def __init__(self, base_channels: int, levels: int, attention_level: int, rays: int, heads: int = 4,
-                 attention: bool = True, specular_scale: str = "none", diffuse_gain: bool = True):
+                 attention: bool = True, specular_scale: str = "none", diffuse_gain: bool = True,
+                 albedo: str = "lambert", uv_resolution: int | None = None):
         super().__init__()
         if specular_scale not in SPECULAR_SCALES:
             raise EgorelightError(f"net.specular_scale must be one of {', '.join(SPECULAR_SCALES)}, got {specular_scale!r}")
+        if albedo not in ALBEDO_SOURCES:
+            raise EgorelightError(f"net.albedo must be one of {', '.join(ALBEDO_SOURCES)}, got {albedo!r}")
+        if albedo != "lambert" and not uv_resolution:
+            raise EgorelightError(f"net.albedo {albedo} learns a UV map: the model needs net.uv_resolution")
         self.config = {"base_channels": base_channels, "levels": levels, "attention_level": attention_level,
                        "rays": rays, "heads": heads, "attention": attention, "specular_scale": specular_scale,
-                       "diffuse_gain": diffuse_gain}
+                       "diffuse_gain": diffuse_gain, "albedo": albedo}
+        if uv_resolution:
+            self.config["uv_resolution"] = int(uv_resolution)
         self.diffuse = DiffuseNet(base_channels, levels)
         self.specular = SpecularNet(base_channels, levels, attention_level, heads, attention)
+        #: (3,H,W) the learned log gain (``albedo: gain``) or log albedo (``texture``) per texel
+        self.albedo_map = (nn.Parameter(torch.zeros(3, int(uv_resolution), int(uv_resolution)))
+                           if albedo != "lambert" else None)
+
+    def diffuse_albedo(self, frame: "RelightFrame", coverage: torch.Tensor) -> torch.Tensor:
+        """(N,3) ``c_diff`` of the covered texels before DiffuseNet's gain: the frame's Lambert
+        relighting (``albedo: lambert``), it times the learned gain (``gain``), or the learned
+        albedo times the frame's irradiance ``chi`` (``texture``)."""
+        source = self.config["albedo"]
+        if source == "lambert":
+            return frame.lambert
+        learned = torch.exp(self.albedo_map.permute(1, 2, 0)[coverage])
+        if source == "gain":
+            return frame.lambert * learned
+        return learned * frame.maps[7:10].permute(1, 2, 0)[coverage]
+
+    def start_albedo(self, albedo: torch.Tensor, coverage: torch.Tensor) -> None:
+        """Start the ``texture`` map at ``albedo`` (N,3) per covered texel (:func:`mean_albedo`)."""
+        if self.config["albedo"] == "texture":
+            with torch.no_grad():
+                log_albedo = self.albedo_map.permute(1, 2, 0)
+                log_albedo[coverage] = torch.log(albedo.clamp_min(1e-4)).to(log_albedo.dtype)
 
     def architecture(self) -> dict:
         return dict(self.config)
@@ -94,9 +135,11 @@ class RelightModel(nn.Module):
     def from_architecture(cls, arch) -> "RelightModel":
         """The model an :meth:`architecture` dict (or the config's ``net`` section) describes; a
         model saved before ``specular_scale`` / ``diffuse_gain`` existed gets their old behaviour."""
+        uv_resolution = arch.get("uv_resolution")
         return cls(int(arch["base_channels"]), int(arch["levels"]), int(arch["attention_level"]), int(arch["rays"]),
                    int(arch["heads"]), bool(arch["attention"]), str(arch.get("specular_scale", "none")),
-                   bool(arch.get("diffuse_gain", True)))
+                   bool(arch.get("diffuse_gain", True)), str(arch.get("albedo", "lambert")),
+                   None if uv_resolution is None else int(uv_resolution))
 
 
 @dataclass
@@ -163,6 +206,15 @@ def relit_frame(frame: RelightFrame, coverage: torch.Tensor, chi: torch.Tensor, 
                         frame.vertices, frame.head, albedo * chi / frame.flat_irradiance, frame.flat_irradiance)
 
 
+def mean_albedo(frames: list[RelightFrame], coverage: torch.Tensor) -> torch.Tensor:
+    """(N,3) per covered texel the median over ``frames`` of GeoLift's albedo ``a / (pi rho s_flat)``
+    (the factor of ``chi`` in the Lambert relighting): where ``albedo: texture`` starts."""
+    if not frames:
+        raise EgorelightError("the learned albedo needs at least one training frame to start from")
+    albedos = [frame.maps[0:3].permute(1, 2, 0)[coverage] / frame.flat_irradiance for frame in frames]
+    return torch.stack(albedos).median(dim=0).values
+
+
 def ray_lighting(frame: RelightFrame, low_raster: UVRaster, faces: np.ndarray, lightstage: LightStage) -> TexelLighting:
     """The frame's view-independent texel lighting at the attention level's UV resolution, shaded
     with GeoLift's normals (area-averaged down to that resolution)."""
@@ -212,7 +264,7 @@ def relit_avatar(model: RelightModel, frame: RelightFrame, coverage: torch.Tenso
         spec_map = spec_map * ray_irradiance(rays * ray_scale, valid, tuple(spec_map.shape[-2:]))
     raw = raw_map.permute(1, 2, 0)[coverage]
     c_spec = spec_map.permute(1, 2, 0)[coverage]
-    c_diff = frame.lambert * light_scale  # the Lambert relighting, times DiffuseNet's gain (1 untrained)
+    c_diff = model.diffuse_albedo(frame, coverage) * light_scale  # times DiffuseNet's gain (1 untrained)
     if model.config["diffuse_gain"]:
         c_diff = c_diff * diffuse_colour(raw) / LN2
     gaussians, offsets = texel_gaussians(frame.points, frame.footprint, raw, c_diff + c_spec, settings)

@@ -381,6 +381,9 @@ class RelightCommands:
             net, t = cfg.net, cfg.train
             torch.manual_seed(int(cfg.seed))
             model = rl.RelightModel.from_architecture(net)
+            if model.config["albedo"] == "texture":
+                train_frames = sorted({f for f, _ in train_views})
+                model.start_albedo(rl.mean_albedo([data.frame(f) for f in train_frames], data.coverage), data.coverage)
             optimizer = torch.optim.Adam(model.parameters(), lr=float(t.lr))
             steps = int(t.steps)
 
