@@ -39,6 +39,25 @@ def test_a_tiny_relight_training_lowers_its_loss(relight_model):
     assert metrics["val_lpips"] is None and "VGG" in metrics["id_mrf"]
 
 
+@pytest.mark.parametrize("albedo", ["gain", "texture"])
+def test_a_learned_albedo_trains_saves_and_relights(tiny_capture, skinned_meshes, relight_inputs, albedo, tmp_path):
+    from egorelight_cli.stages.relight_commands import load_relight_model
+
+    model_dir = tmp_path / "relight"
+    assert _main("--preset", "tiny", "-q", "--set", "train.steps=4", "--set", f"net.albedo={albedo}", "train", "relight",
+                 "--capture", tiny_capture, "--meshes", skinned_meshes / "relight_train.npz", "--uvmaps",
+                 relight_inputs / "uvmaps_relight_train", "--out", model_dir) == 0
+    model, net, _ = load_relight_model(model_dir)
+    assert model.config["albedo"] == albedo and model.albedo_map.shape == (3, net["uv_resolution"], net["uv_resolution"])
+    learned = model.albedo_map.detach()
+    # the gain starts at 0 and the texture at the training frames' albedo: four steps leave either near its start
+    assert (float(learned.abs().max()) < 0.05) == (albedo == "gain")
+    assert _main("--preset", "tiny", "-q", "relight", "--capture", tiny_capture, "--meshes",
+                 skinned_meshes / "test.npz", "--uvmaps", relight_inputs / "uvmaps_test", "--model", model_dir,
+                 "--seq", "test", "--out", tmp_path / "renders") == 0
+    assert np.isfinite(json.loads((tmp_path / "renders" / "manifest.json").read_text())["metrics"]["psnr"])
+
+
 def test_relight_renders_held_out_cameras_and_scores_them(tiny_capture, skinned_meshes, relight_inputs, relight_model,
                                                           tmp_path):
     out = tmp_path / "renders"
