@@ -44,11 +44,12 @@ def test_a_learned_albedo_trains_saves_and_relights(tiny_capture, skinned_meshes
     from egorelight_cli.stages.relight_commands import load_relight_model
 
     model_dir = tmp_path / "relight"
-    assert _main("--preset", "tiny", "-q", "--set", "train.steps=4", "--set", f"net.albedo={albedo}", "train", "relight",
-                 "--capture", tiny_capture, "--meshes", skinned_meshes / "relight_train.npz", "--uvmaps",
+    assert _main("--preset", "tiny", "-q", "--set", "train.steps=4", "--set", f"net.albedo={albedo}", "train",
+                 "relight", "--capture", tiny_capture, "--meshes", skinned_meshes / "relight_train.npz", "--uvmaps",
                  relight_inputs / "uvmaps_relight_train", "--out", model_dir) == 0
     model, net, _ = load_relight_model(model_dir)
-    assert model.config["albedo"] == albedo and model.albedo_map.shape == (3, net["uv_resolution"], net["uv_resolution"])
+    size = net["uv_resolution"]
+    assert model.config["albedo"] == albedo and model.albedo_map.shape == (3, size, size)
     learned = model.albedo_map.detach()
     # the gain starts at 0 and the texture at the training frames' albedo: four steps leave either near its start
     assert (float(learned.abs().max()) < 0.05) == (albedo == "gain")

@@ -159,14 +159,14 @@ def _flat_lit_frame(n: int = 8, seed: int = 0):
 
 @pytest.mark.parametrize("albedo", ["lambert", "gain", "texture"])
 def test_learned_albedo_starts_at_the_lambert_relighting_and_stays_linear_in_the_light(albedo):
-    from egorelight_cli.stages.relight import RelightModel, mean_albedo, relit_avatar, relit_frame
+    from egorelight_cli.stages.relight import RelightModel, median_albedo, relit_avatar, relit_frame
 
     n = 8
     frame, coverage = _flat_lit_frame(n), torch.ones(n, n, dtype=torch.bool)
     rays, valid = torch.rand(4, 4, 3, 6), torch.ones(4, 4, 3, dtype=torch.bool)
     torch.manual_seed(0)
     model = RelightModel(4, 2, 1, 3, 1, albedo=albedo, uv_resolution=n)
-    model.start_albedo(mean_albedo([frame], coverage), coverage)  # one frame: its own albedo
+    model.start_albedo(median_albedo([frame], coverage), coverage)  # one frame: its own albedo
     with torch.no_grad():
         torch.testing.assert_close(relit_avatar(model, frame, coverage, rays, valid).diffuse, frame.lambert)
         if model.albedo_map is not None:  # as if trained: the learned map moves away from the start
@@ -178,15 +178,15 @@ def test_learned_albedo_starts_at_the_lambert_relighting_and_stays_linear_in_the
     assert torch.allclose(once, frame.lambert) == (albedo == "lambert")
 
 
-def test_mean_albedo_is_the_median_over_frames():
-    from egorelight_cli.stages.relight import mean_albedo
+def test_median_albedo_is_the_median_over_frames():
+    from egorelight_cli.stages.relight import median_albedo
 
     coverage = torch.ones(8, 8, dtype=torch.bool)
     frames = [_flat_lit_frame(seed=s) for s in range(3)]
     albedos = torch.stack([f.maps[0:3].permute(1, 2, 0).reshape(-1, 3) / f.flat_irradiance for f in frames])
-    torch.testing.assert_close(mean_albedo(frames, coverage), albedos.median(dim=0).values)
-    torch.testing.assert_close(mean_albedo(frames[:1], coverage) * frames[0].maps[7:10].permute(1, 2, 0).reshape(-1, 3),
-                               frames[0].lambert)
+    torch.testing.assert_close(median_albedo(frames, coverage), albedos.median(dim=0).values)
+    chi = frames[0].maps[7:10].permute(1, 2, 0).reshape(-1, 3)
+    torch.testing.assert_close(median_albedo(frames[:1], coverage) * chi, frames[0].lambert)
 
 
 def test_learned_albedo_round_trips_through_the_architecture_and_checks_its_settings():

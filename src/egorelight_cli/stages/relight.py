@@ -71,8 +71,8 @@ SPECULAR_SCALES = ("none", "irradiance")
 #: ``lambert`` GeoLift's flat-lit texture of the frame (``c_diff`` is the Lambert relighting);
 #: ``gain`` that relighting times a learned per-texel gain ``exp(g)`` (a free UV map, zero at the
 #: start: an untrained model renders the Lambert baseline); ``texture`` a learned per-texel albedo
-#: ``exp(t)`` times the frame's irradiance ``chi``, started at the training frames' mean albedo
-#: (:func:`mean_albedo`). The learned maps do not depend on the light, so the diffuse colour stays
+#: ``exp(t)`` times the frame's irradiance ``chi``, started at the training frames' median albedo
+#: (:func:`median_albedo`). The learned maps do not depend on the light, so the diffuse colour stays
 #: linear in it and carries over to unseen lighting (``diffuse_gain``, a function of ``chi``, did not).
 ALBEDO_SOURCES = ("lambert", "gain", "texture")
 
@@ -122,7 +122,7 @@ class RelightModel(nn.Module):
         return learned * frame.maps[7:10].permute(1, 2, 0)[coverage]
 
     def start_albedo(self, albedo: torch.Tensor, coverage: torch.Tensor) -> None:
-        """Start the ``texture`` map at ``albedo`` (N,3) per covered texel (:func:`mean_albedo`)."""
+        """Start the ``texture`` map at ``albedo`` (N,3) per covered texel (:func:`median_albedo`)."""
         if self.config["albedo"] == "texture":
             with torch.no_grad():
                 log_albedo = self.albedo_map.permute(1, 2, 0)
@@ -206,7 +206,7 @@ def relit_frame(frame: RelightFrame, coverage: torch.Tensor, chi: torch.Tensor, 
                         frame.vertices, frame.head, albedo * chi / frame.flat_irradiance, frame.flat_irradiance)
 
 
-def mean_albedo(frames: list[RelightFrame], coverage: torch.Tensor) -> torch.Tensor:
+def median_albedo(frames: list[RelightFrame], coverage: torch.Tensor) -> torch.Tensor:
     """(N,3) per covered texel the median over ``frames`` of GeoLift's albedo ``a / (pi rho s_flat)``
     (the factor of ``chi`` in the Lambert relighting): where ``albedo: texture`` starts."""
     if not frames:

@@ -383,7 +383,8 @@ class RelightCommands:
             model = rl.RelightModel.from_architecture(net)
             if model.config["albedo"] == "texture":
                 train_frames = sorted({f for f, _ in train_views})
-                model.start_albedo(rl.mean_albedo([data.frame(f) for f in train_frames], data.coverage), data.coverage)
+                start = rl.median_albedo([data.frame(f) for f in train_frames], data.coverage)
+                model.start_albedo(start, data.coverage)
             optimizer = torch.optim.Adam(model.parameters(), lr=float(t.lr))
             steps = int(t.steps)
 
