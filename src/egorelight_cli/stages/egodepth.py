@@ -38,7 +38,7 @@ normals.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -55,6 +55,8 @@ from egorelight_cli.io.capture import Capture, SequenceInfo
 from egorelight_cli.nn.depth_net import DepthNet
 
 METHODS = ("net", "sgbm")
+#: the body-mask threshold of a model trained without validation frames
+DEFAULT_MASK_THRESHOLD = 0.5
 MODEL_STAGE = "egodepth"
 
 
@@ -132,12 +134,35 @@ class TrainingView:
     stereo: np.ndarray | None = None
 
 
+def split_frames(frames: Sequence[int], max_frames: int, validation_frames: int) -> tuple[list[int], list[int]]:
+    """(training, validation) frames of one sequence. Training: ``max_frames`` evenly spaced (all
+    when 0); validation: ``validation_frames`` evenly spaced among the frames training leaves. When
+    training takes every frame, the validation frames are set aside first, provided at least as
+    many remain to train on; otherwise there is no validation frame."""
+    frames = [int(f) for f in frames]
+    training = list(evenly_spaced(frames, max_frames))
+    rest = [f for f in frames if f not in set(training)]
+    if validation_frames <= 0:
+        return training, []
+    if rest:
+        return training, list(evenly_spaced(rest, validation_frames))
+    if len(frames) < 2 * validation_frames:
+        return training, []
+    validation = list(evenly_spaced(frames, validation_frames))
+    return list(evenly_spaced([f for f in frames if f not in set(validation)], max_frames)), validation
+
+
 def supervision(capture: Capture, calibration: Calibration, sequences: Sequence[SequenceInfo], roles: Sequence[str],
-                near_m: float, max_frames: int = 0, stereo=None) -> list[TrainingView]:
+                near_m: float, max_frames: int = 0, stereo=None, validation_frames: int = 0,
+                part: str = "training") -> list[TrainingView]:
     """Render every available reconstruction into the ego views (see the module docstring).
 
     ``stereo``: None, or a callable (the frame's :class:`EgoView` list -> range map by role, e.g.
-    :class:`SGBMDepth` bound to its settings) whose output each view keeps as its stereo input."""
+    :class:`SGBMDepth` bound to its settings) whose output each view keeps as its stereo input.
+    ``part``: ``training`` or ``validation``, the frames of :func:`split_frames` (per sequence);
+    validation may be empty."""
+    if part not in ("training", "validation"):
+        raise ValueError(f"part must be training or validation, got {part!r}")
     from egorelight_cli.io.meshes import read_mesh
 
     views: list[TrainingView] = []
@@ -145,8 +170,8 @@ def supervision(capture: Capture, calibration: Calibration, sequences: Sequence[
         check_roles(capture, sequence, roles)
         frames, posed = usable_frames(calibration, sequence, roles)
         frames = [f for f, ok in zip(frames, posed) if ok and sequence.recon_path(f).exists()]
-        frames = evenly_spaced(frames, max_frames)
-        for f in frames:
+        training, validation = split_frames(frames, max_frames, validation_frames)
+        for f in (training if part == "training" else validation):
             vertices, faces = read_mesh(sequence.recon_path(f))
             caster = RayCaster(vertices, faces)
             frame_views = [load_view(capture, calibration, sequence, role, f) for role in roles]
@@ -157,7 +182,7 @@ def supervision(capture: Capture, calibration: Calibration, sequences: Sequence[
                 supervised = rendered.hit & rendered.front_facing & ~near
                 views.append(TrainingView(view.role, sequence.name, f, view.image, rendered.range, supervised, near,
                                           stereo_ranges.get(view.role)))
-    if not views:
+    if not views and part == "training":
         names = ", ".join(s.name for s in sequences)
         raise EgorelightError(f"no training frame: sequences {names} have no reconstruction (recon/) at a posed "
                               "frame with ego images")
@@ -324,7 +349,10 @@ def fit_report(model: DepthNet, views: Sequence[TrainingView], ray_maps: dict, s
 # -------------------------------------------------------------------------------- inference
 @dataclass(frozen=True)
 class PredictSettings:
-    mask_threshold: float
+    """``predict.*``; ``mask_threshold`` None: the model's own (chosen on its validation frames,
+    :mod:`egorelight_cli.stages.egodepth_mask`), see :meth:`for_model`."""
+
+    mask_threshold: float | None
     min_range_m: float
     max_range_m: float
     edge_relative_jump: float
@@ -333,8 +361,18 @@ class PredictSettings:
     @classmethod
     def from_config(cls, cfg) -> "PredictSettings":
         p = cfg.predict
-        return cls(float(p.mask_threshold), float(p.min_range_m), float(p.max_range_m), float(p.edge_relative_jump),
+        threshold = None if p.mask_threshold is None else float(p.mask_threshold)
+        return cls(threshold, float(p.min_range_m), float(p.max_range_m), float(p.edge_relative_jump),
                    float(p.max_uncertainty))
+
+    def for_model(self, model_threshold: float | None) -> "PredictSettings":
+        """These settings with the body-mask threshold resolved: the configured one, else the
+        model's (``model_threshold``), else :data:`DEFAULT_MASK_THRESHOLD` (a model trained
+        without validation frames)."""
+        if self.mask_threshold is not None:
+            return self
+        chosen = DEFAULT_MASK_THRESHOLD if model_threshold is None else float(model_threshold)
+        return replace(self, mask_threshold=chosen)
 
 
 def clean_range(range_map: np.ndarray, inside: np.ndarray, settings: PredictSettings) -> np.ndarray:
@@ -346,29 +384,51 @@ def clean_range(range_map: np.ndarray, inside: np.ndarray, settings: PredictSett
 
 
 @torch.no_grad()
-def predict_ranges_net(model: DepthNet, views: Sequence[EgoView], ray_maps: dict, self_masks: dict,
-                       settings: PredictSettings, device: torch.device, prior_fn=None,
-                       stereo: dict | None = None) -> dict[str, np.ndarray]:
-    """Range maps (H,W) float32 (0 = none) of a frame's views, by role; ``stereo``: the frame's
-    stereo range maps by role, for a network with the stereo input."""
-    images = torch.from_numpy(np.stack([v.image for v in views]).astype(np.float32) / 255.0).permute(0, 3, 1, 2)
-    rays = torch.from_numpy(np.stack([ray_maps[v.role][0] for v in views]).astype(np.float32)).permute(0, 3, 1, 2)
-    prior = prior_fn(images).to(device) if prior_fn is not None else None
+def network_maps(model: DepthNet, images: np.ndarray, rays: np.ndarray, device: torch.device, prior_fn=None,
+                 stereo: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """The network on N views: images (N,H,W,3) uint8, rays (N,H,W,3), stereo ranges (N,H,W) metres
+    for a network with the stereo input -> range (N,H,W) metres, body probability (N,H,W) and the
+    predicted Laplace scale of the log-range error (N,H,W) or None, all float32."""
+    image = torch.from_numpy(images.astype(np.float32) / 255.0).permute(0, 3, 1, 2)
+    ray = torch.from_numpy(rays.astype(np.float32)).permute(0, 3, 1, 2)
+    prior = prior_fn(image).to(device) if prior_fn is not None else None
     stereo_maps = None
     if model.stereo_input:
         if stereo is None:
             raise EgorelightError("this egodepth network takes stereo ranges: none were given")
-        stereo_maps = torch.from_numpy(np.stack([stereo[v.role] for v in views]).astype(np.float32))[:, None].to(device)
-    log_range, logit, log_scale = model(images.to(device), rays.to(device), prior, stereo_maps)
-    ranges = torch.exp(log_range[:, 0]).cpu().numpy()
-    body = torch.sigmoid(logit[:, 0]).cpu().numpy() > settings.mask_threshold
-    if log_scale is not None and settings.max_uncertainty > 0:
-        body &= torch.exp(log_scale[:, 0]).cpu().numpy() < settings.max_uncertainty
-    out = {}
-    for i, v in enumerate(views):
-        inside = ray_maps[v.role][1] & ~self_masks.get(v.role, False) & body[i]
-        out[v.role] = clean_range(ranges[i], inside, settings)
-    return out
+        stereo_maps = torch.from_numpy(stereo.astype(np.float32))[:, None].to(device)
+    log_range, logit, log_scale = model(image.to(device), ray.to(device), prior, stereo_maps)
+    scale = torch.exp(log_scale[:, 0]).cpu().numpy() if log_scale is not None else None
+    return torch.exp(log_range[:, 0]).cpu().numpy(), torch.sigmoid(logit[:, 0]).cpu().numpy(), scale
+
+
+def kept_range(range_map: np.ndarray, probability: np.ndarray, scale: np.ndarray | None, inside: np.ndarray,
+               settings: PredictSettings, threshold: float) -> np.ndarray:
+    """One view's (H,W) range map as inference keeps it: body probability above ``threshold``,
+    predicted scale below ``settings.max_uncertainty`` (when it is on), ``inside`` (the lens minus
+    the self-occlusion mask), then :func:`clean_range`; 0 = no depth."""
+    keep = inside & (probability > threshold)
+    if scale is not None and settings.max_uncertainty > 0:
+        keep &= scale < settings.max_uncertainty
+    return clean_range(range_map, keep, settings)
+
+
+def predict_ranges_net(model: DepthNet, views: Sequence[EgoView], ray_maps: dict, self_masks: dict,
+                       settings: PredictSettings, device: torch.device, prior_fn=None,
+                       stereo: dict | None = None) -> dict[str, np.ndarray]:
+    """Range maps (H,W) float32 (0 = none) of a frame's views, by role; ``stereo``: the frame's
+    stereo range maps by role, for a network with the stereo input; ``settings`` with its mask
+    threshold resolved (:meth:`PredictSettings.for_model`)."""
+    if settings.mask_threshold is None:
+        raise EgorelightError("egodepth: the body-mask threshold is unresolved (PredictSettings.for_model)")
+    stereo_maps = np.stack([stereo[v.role] for v in views]) if stereo is not None else None
+    ranges, probability, scale = network_maps(model, np.stack([v.image for v in views]),
+                                              np.stack([ray_maps[v.role][0] for v in views]), device, prior_fn,
+                                              stereo_maps)
+    return {v.role: kept_range(ranges[i], probability[i], scale[i] if scale is not None else None,
+                               ray_maps[v.role][1] & ~self_masks.get(v.role, False), settings,
+                               settings.mask_threshold)
+            for i, v in enumerate(views)}
 
 
 class SGBMDepth:

@@ -89,6 +89,7 @@ class EgodepthCommands:
 
         from egorelight_cli.nn.training import Checkpoint, checkpoint_beside
         from egorelight_cli.stages import egodepth as ed
+        from egorelight_cli.stages.egodepth_mask import validation_report
 
         capture, capture_artifact, calibration, calibration_artifact = load_inputs(capture_path, calibration_path)
         cfg = self.run.config()
@@ -113,11 +114,14 @@ class EgodepthCommands:
             started = time.perf_counter()
             ray_maps = {r: ed.camera_ray_map(capture.ego_camera(r)) for r in roles}
             stereo = None
+            settings = ed.PredictSettings.from_config(cfg)
             if bool(cfg.net.stereo_input):
-                sgbm, settings = ed.SGBMDepth(capture, calibration, roles, cfg), ed.PredictSettings.from_config(cfg)
+                sgbm = ed.SGBMDepth(capture, calibration, roles, cfg)
                 stereo = lambda views: sgbm(views, ray_maps, settings)  # noqa: E731
-            views = ed.supervision(capture, calibration, sequences, roles, float(cfg.train.near_m),
-                                   int(cfg.train.max_frames), stereo)
+            split = (capture, calibration, sequences, roles, float(cfg.train.near_m), int(cfg.train.max_frames),
+                     stereo, int(cfg.train.validation_frames))
+            views = ed.supervision(*split, part="training")
+            validation = ed.supervision(*split, part="validation")
             masks = ed.self_occlusion_masks(views, float(cfg.train.self_occlusion_fraction))
             writer.timing["supervision_s"] = round(time.perf_counter() - started, 3)
             console.info(f"train egodepth: {len(views)} supervised views from {', '.join(names)}")
@@ -126,7 +130,12 @@ class EgodepthCommands:
                                               device, Checkpoint(checkpoint, writer.cache_key, resume), prior)
             writer.timing["train_s"] = round(time.perf_counter() - started, 3)
             writer.metrics.update(ed.fit_report(model, views, ray_maps, masks, prior))
+            mask_report = validation_report(model, validation, ray_maps, masks, settings,
+                                            float(cfg.train.mask_precision), torch.device("cpu"), prior)
+            writer.metrics.update(mask_report)
             extra = {"roles": list(roles), "self_masks": {r: torch.from_numpy(m) for r, m in masks.items()},
+                     "mask_threshold": mask_report["mask_threshold"],
+                     "validation_frames": sorted({(v.sequence, v.frame_id) for v in validation}),
                      "image_size": {r: [capture.ego_camera(r).width, capture.ego_camera(r).height] for r in roles},
                      "backbone": str(backbone) if backbone is not None else None,
                      "training_views": len(views), "training_sequences": names}
@@ -188,14 +197,14 @@ class EgodepthCommands:
                 raise EgorelightError("a pointcloud artifact is a directory (it holds depth EXRs): give --out a directory",
                                       out)
             _predict_sequence(writer, cfg, capture, calibration, sequence, roles, frames, posed, method, model, masks,
-                              device, prior, frame_range)
+                              device, prior, frame_range, extra or {})
 
         return self.run.produce(out, "pointcloud", write, inputs=inputs, source_files=sources)
 
 
 def _predict_sequence(writer: ArtifactWriter, cfg: Config, capture: Capture, calibration: Calibration, sequence,
                       roles, frames: np.ndarray, posed: np.ndarray, method: str, model, masks, device, prior,
-                      frame_range: FrameRange) -> None:
+                      frame_range: FrameRange, extra: dict | None = None) -> None:
     from egorelight_cli.stages import egodepth as ed
     from egorelight_cli.io.exr import write_exr
     from egorelight_cli.io.images import write_image
@@ -205,6 +214,14 @@ def _predict_sequence(writer: ArtifactWriter, cfg: Config, capture: Capture, cal
     from egorelight_cli.structures.pointcloud import PointCloudSequence
 
     settings = ed.PredictSettings.from_config(cfg)
+    if method == "net":
+        model_threshold = extra.get("mask_threshold")
+        settings = settings.for_model(model_threshold)
+        writer.metrics["mask_threshold"] = settings.mask_threshold
+        writer.metrics["mask_threshold_source"] = (
+            "predict.mask_threshold" if cfg.predict.mask_threshold is not None else
+            "the model's (chosen on its validation frames)" if model_threshold is not None else
+            f"default {ed.DEFAULT_MASK_THRESHOLD} (the model has none)")
     ray_maps = {r: ed.camera_ray_map(capture.ego_camera(r)) for r in roles}
     model = model.to(device) if model is not None else None
     compare = method == "net" and bool(cfg.eval.compare_sgbm)

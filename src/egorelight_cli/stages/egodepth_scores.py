@@ -115,6 +115,7 @@ def merged_metrics(root, manifests: list[dict]) -> dict:
     cloud = read_pointcloud_npz(Path(root) / POINTCLOUD_PAYLOAD)
     first = manifests[0]["metrics"]
     metrics = run_metrics(rows, cloud.valid, first["method"], first["sequence"])
-    if "groundtruth_frame" in first:  # the same in every shard
-        metrics["groundtruth_frame"] = first["groundtruth_frame"]
+    for key in ("mask_threshold", "mask_threshold_source", "groundtruth_frame"):  # the same in every shard
+        if key in first:
+            metrics[key] = first[key]
     return metrics
