@@ -216,7 +216,7 @@ egopose-curve: $(foreach n,$(EGOPOSE_CURVE_FRAMES),$(SUBJECT)/curves/egopose/$(n
 	@$(BIN)/python -m egorelight_cli.report.table --keys training_frames,$(SEQ)_mpjpe_body_cm,$(SEQ)_mpjpe_hands_cm,$(SEQ)_per_frame_mpjpe_body_cm,$(SEQ)_per_frame_mpjpe_hands_cm,$(SEQ)_mean_pose_mpjpe_body_cm,$(SEQ)_mean_pose_mpjpe_hands_cm $^
 
 egodepth-curve: $(foreach n,$(EGODEPTH_CURVE_FRAMES),$(SUBJECT)/curves/egodepth/$(n)/manifest.json)
-	@$(BIN)/python -m egorelight_cli.report.table --keys depth_absrel,point_to_surface_cm,sgbm_depth_absrel,sgbm_point_to_surface_cm $^
+	@$(BIN)/python -m egorelight_cli.report.table --keys mask_threshold,depth_absrel,point_to_surface_cm,sgbm_depth_absrel,sgbm_point_to_surface_cm $^
 
 # ---------------------------------------------------------------- animate (Sec. depth-conditioned animatable avatar)
 # Trained on the ego point cloud of ANIMATE_TRAIN_SEQ under the motion the headset pipeline estimates

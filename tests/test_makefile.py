@@ -92,11 +92,11 @@ def _commands(out: str) -> list[str]:
     return [" ".join(line.split()) for line in out.replace("\\\n", " ").splitlines()]
 
 
-def test_animate_trains_on_the_motion_the_headset_pipeline_estimates(tmp_path):
+def test_animate_trains_on_the_estimated_motion_and_the_mocap(tmp_path):
     out = _commands(_dry_run(tmp_path, f"{tmp_path}/models/animate/manifest.json"))
     train = next(line for line in out if " train animate " in line)
-    assert f"--motion {tmp_path}/motion/ego_train " in train and "motion_mocap" not in train
-    assert any(f"ik --in {tmp_path}/keypoints/ego_train " in line for line in out)  # egopose -> ik on it
-    both = _dry_run(tmp_path, "ANIMATE_TRAIN_MOTIONS=motion motion_mocap", f"{tmp_path}/models/animate/manifest.json")
-    train = next(line for line in _commands(both) if " train animate " in line)
     assert f"--motion {tmp_path}/motion/ego_train --motion {tmp_path}/motion_mocap/ego_train" in train
+    assert any(f"ik --in {tmp_path}/keypoints/ego_train " in line for line in out)  # egopose -> ik on it
+    alone = _dry_run(tmp_path, "ANIMATE_TRAIN_MOTIONS=motion", f"{tmp_path}/models/animate/manifest.json")
+    train = next(line for line in _commands(alone) if " train animate " in line)
+    assert f"--motion {tmp_path}/motion/ego_train " in train and "motion_mocap" not in train

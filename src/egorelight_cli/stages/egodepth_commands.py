@@ -206,6 +206,7 @@ def _predict_sequence(writer: ArtifactWriter, cfg: Config, capture: Capture, cal
                       roles, frames: np.ndarray, posed: np.ndarray, method: str, model, masks, device, prior,
                       frame_range: FrameRange, extra: dict | None = None) -> None:
     from egorelight_cli.stages import egodepth as ed
+    from egorelight_cli.stages.egodepth_preview import depth_preview_row, pointcloud_preview
     from egorelight_cli.io.exr import write_exr
     from egorelight_cli.io.images import write_image
     from egorelight_cli.io.pointcloud import save_pointcloud
@@ -274,13 +275,13 @@ def _predict_sequence(writer: ArtifactWriter, cfg: Config, capture: Capture, cal
                 other_points, _, other_valid, _ = ed.frame_pointcloud(views, stereo, ray_maps, P, k, rng)
                 scores["sgbm_"].add_frame(t, stereo, truth_maps, surface(other_points[other_valid]), other=ranges)
         if start + t in preview_at:
-            preview_rows[start + t] = ed.depth_preview_row(views, ranges, truth_maps, int(cfg.preview.scale))
+            preview_rows[start + t] = depth_preview_row(views, ranges, truth_maps, int(cfg.preview.scale))
             if start + t == preview_at[0]:  # the point cloud of the first previewed frame
                 mesh = None
                 if truth.has(f):
                     i = int(np.nonzero(truth.frame_ids == f)[0][0])
                     mesh = (truth.vertices[i], truth.faces)
-                write_image(writer.path(POINTCLOUD_PREVIEW_PNG), ed.pointcloud_preview(
+                write_image(writer.path(POINTCLOUD_PREVIEW_PNG), pointcloud_preview(
                     points[t][valid[t]], normals[t][valid[t]], distance, mesh, int(cfg.preview.width),
                     int(cfg.preview.height)))
     fps = sequence.fps if "fps" in sequence.doc else None
