@@ -12,6 +12,7 @@ import pytest
 import torch
 
 from egorelight_cli.cli import main
+from egorelight_cli.config import resolve_config
 from egorelight_cli.stages import egodepth as ed
 from egorelight_cli.stages.egodepth_mask import THRESHOLDS, choose_threshold, precision_recall
 
@@ -116,7 +117,9 @@ def test_the_model_carries_the_threshold_chosen_on_validation_frames(tiny_captur
     assert trained["mask_threshold"] in THRESHOLDS
     curve = trained["validation_mask_curve"]
     precision = np.array([curve[f"{t:.2f}"][0] for t in THRESHOLDS])
-    assert trained["mask_threshold"] == choose_threshold(precision, THRESHOLDS, 0.99)
+    target = float(resolve_config("egodepth", "tiny").train.mask_precision)
+    assert trained["mask_threshold"] == choose_threshold(precision, THRESHOLDS, target)
+    assert trained["mask_threshold_source"] == f"lowest threshold with validation precision >= {target}"
     assert trained["validation_mask_precision"] == pytest.approx(curve[f"{trained['mask_threshold']:.2f}"][0])
 
     own, fixed = tmp_path / "own", tmp_path / "fixed"
