@@ -224,9 +224,11 @@ egodepth-curve: $(foreach n,$(EGODEPTH_CURVE_FRAMES),$(SUBJECT)/curves/egodepth/
 # so the depth encoding carries the corrections it has to make at run time; the studio's mocap alone
 # left it almost nothing to correct (the network then ignored the depth; measured in issue 21's note).
 # Since issue 21's eleventh session it trains on both the estimated motion and the studio's mocap
-# of ANIMATE_TRAIN_SEQ (the same frames twice, two motion sources, 300 steps as before): on the cpu
+# of ANIMATE_TRAIN_SEQ (the same frames twice, two motion sources, 300 steps then): on the cpu
 # demo (a0a7baa capture) `test` P2S went estimated 2.70 -> 2.66 cm (ego-visible 2.78 -> 2.82),
 # IK of true keypoints 1.15 -> 0.94, simulator DoFs 1.58 -> 1.30 (skinning 2.96 / 1.23 / 0.63).
+# The cpu preset now trains 3000 steps (stages/animate.yaml): estimated 2.53, ego-visible 2.70,
+# IK of true keypoints 0.94, simulator DoFs 1.26, `wild` 5.75 (6.08) on the da225ff capture.
 # ANIMATE_TRAIN_MOTIONS="motion" is the estimated motion alone; "motion_mocap" the mocap alone.
 # The depth-agnostic student is fine-tuned with xi = 0 on the flat-lit frames of ANIMATE_STUDENT_SEQ
 # (for the appearance stages).
