@@ -180,11 +180,14 @@ def test_no_depth_ablation_needs_no_cloud(animate_inputs):
 def test_depth_agnostic_student_fine_tunes_on_flat_lit_relight_frames(animate_inputs):
     gt = animate_inputs["capture"] / "groundtruth"
     out = animate_inputs["root"] / "student"
-    code = _run("--preset", "tiny", "-q", "--set", "train.steps=2", "train", "animate", "--capture",
-                animate_inputs["capture"], "--seq", "relight_train", "--motion", gt / "relight_train" / "motion.npz",
-                "--no-depth", "--init", animate_inputs["model"], "--out", out)
+    # a run from a model takes train.finetune_steps (the cpu preset: 300 of 3000), not train.steps
+    code = _run("--preset", "tiny", "-q", "--set", "train.steps=500", "--set", "train.finetune_steps=2", "train",
+                "animate", "--capture", animate_inputs["capture"], "--seq", "relight_train", "--motion",
+                gt / "relight_train" / "motion.npz", "--no-depth", "--init", animate_inputs["model"], "--out", out)
     assert code == 0
     metrics = _metrics(out)
+    assert metrics["steps"] == 2 and len(json.loads((out / "curve.json").read_text())) <= 2
+    assert _metrics(animate_inputs["model"])["steps"] == 6  # the tiny preset's train.steps, no --init
     assert metrics["no_depth"] is True
     assert metrics["training_frames"] == 2  # frames 0 and 2 are flat-lit, 1 and 3 env-lit
     # the student drives meshes_student/relight_train, scored on a sequence without the HMD

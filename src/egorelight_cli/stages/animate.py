@@ -30,7 +30,7 @@ same network fine-tuned with ``xi = 0`` on the flat-lit frames of ``relight_trai
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import partial
 
 import numpy as np
@@ -112,6 +112,7 @@ class TrainSettings:
     """``train.*``."""
 
     steps: int = _net("train.steps")
+    finetune_steps: int | None = _net("train.finetune_steps")
     batch: int = _net("train.batch")
     lr: float = _net("train.lr")
     depth_dropout: float = _net("train.depth_dropout")
@@ -126,6 +127,13 @@ class TrainSettings:
     @classmethod
     def from_config(cls, cfg: Config) -> "TrainSettings":
         return settings_from_config(cls, cfg)
+
+    def starting_from_a_model(self) -> "TrainSettings":
+        """These settings for a run that starts from a trained model (``--init``): ``finetune_steps``
+        steps when set, else ``steps``."""
+        if self.finetune_steps is None:
+            return self
+        return replace(self, steps=int(self.finetune_steps))
 
 
 # ---------------------------------------------------------------------------- the model

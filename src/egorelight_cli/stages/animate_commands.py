@@ -186,6 +186,8 @@ class AnimateCommands:
             if writer.single_file:
                 raise EgorelightError("an animate model is a directory artifact: give --out a directory name", out)
             settings = TrainSettings.from_config(cfg)
+            if init is not None:
+                settings = settings.starting_from_a_model()
             torch.manual_seed(settings.seed)
             model = init or AnimationModel(character, NetSettings.from_config(cfg), DepthSettings.from_config(cfg),
                                            device=device)
