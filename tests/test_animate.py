@@ -71,6 +71,33 @@ def test_training_a_few_steps_lowers_the_chamfer_loss(animate_inputs):
     assert (animate_inputs["model"] / "model.pt").is_file() and (animate_inputs["model"] / "curve.png").is_file()
 
 
+def test_validation_frames_are_set_aside_and_the_best_weights_kept(animate_inputs):
+    """train.validation_frames: frames never trained on, scored from step 0 on; the model keeps the
+    weights that scored best there (never worse than the untrained, skinning-like start)."""
+    from egorelight_cli.io.model import read_model
+
+    gt = animate_inputs["capture"] / "groundtruth"
+    base = ("--preset", "tiny", "-q", "--set", "train.steps=6", "--set", "train.validate_every=2")
+    args = ("train", "animate", "--capture", animate_inputs["capture"], "--motion", gt / "ego_train" / "motion.npz",
+            "--pointcloud", animate_inputs["root"] / "ego_train_cloud.npz")
+    out = animate_inputs["root"] / "model_validated"
+    assert _run(*base, "--set", "train.validation_frames=1", *args, "--out", out) == 0
+    m = _metrics(out)
+    assert m["validation_frames"] == 1 and m["training_frames"] == 2 and m["validation_samples"] == 1
+    assert m["best_step"] in (0, 2, 4, 6)
+    assert m["validation_chamfer_cm_best"] <= m["validation_chamfer_cm_start"]
+    extra = read_model(out, stage="animate").extra
+    assert len(extra["validation_frames"]) == 1 and not set(extra["validation_frames"]) & set(extra["frames"])
+    curve = json.loads((out / "curve.json").read_text())
+    assert [row["step"] for row in curve if "validation" in row] == [2, 4, 6]
+    assert min(row["validation"] for row in curve if "validation" in row) >= m["validation_chamfer_cm_best"] - 1e-9
+    # three frames cannot spare two: no validation, every frame trains, said in the manifest
+    out = animate_inputs["root"] / "model_unvalidated"
+    assert _run(*base, "--set", "train.validation_frames=2", *args, "--out", out) == 0
+    m = _metrics(out)
+    assert m["validation_frames"] == 0 and m["validation_samples"] == 0 and m["training_frames"] == 3
+
+
 def _motion_off_by(source: Path, out: Path, sigma_m: float, seed: int) -> Path:
     """``source`` with its root translation off by N(0, sigma_m) per axis and frame (a stand-in for
     a headset estimate: the tiny capture has too few frames to train egopose)."""

@@ -11,7 +11,7 @@ import torch
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.io.model import ModelPayload, read_model, write_model
 from egorelight_cli.nn.augment import ColourJitter, ShadingJitter, apply_colour_jitter
-from egorelight_cli.nn.training import train
+from egorelight_cli.nn.training import BestOnValidation, Checkpoint, train
 from egorelight_cli.nn.unet import UNet, sample_feature_map
 
 
@@ -100,6 +100,36 @@ def test_training_converges_and_resume_matches_uninterrupted(tmp_path):
     assert [row["step"] for row in curve] == [10, 20, 30, 40, 50, 60]
     for p, q in zip(model.parameters(), reference):
         torch.testing.assert_close(p.detach(), q)
+
+
+def _pulled_past_the_validation_optimum():
+    """One parameter p pulled from 0 to 2 by SGD on (p - 2)^2 (lr 0.05: p_k = 2 (1 - 0.9^k)), scored
+    on validation by (p - 1)^2: best at step 7 (p = 1.0434; step 6 gives 0.9371)."""
+    model = torch.nn.Linear(1, 1, bias=False)
+    torch.nn.init.zeros_(model.weight)
+    optimizer = torch.optim.SGD(model.parameters(), lr=0.05)
+    selection = BestOnValidation(lambda: float((model.weight[0, 0] - 1.0) ** 2), every=1)
+    return model, optimizer, (lambda step: {"loss": (model.weight[0, 0] - 2.0) ** 2}), selection
+
+
+def test_best_on_validation_ends_with_the_best_weights_and_resumes_to_the_same(tmp_path):
+    model, optimizer, step_fn, selection = _pulled_past_the_validation_optimum()
+    curve = train(model, optimizer, step_fn, 20, log_every=1, selection=selection)
+    assert selection.first == pytest.approx(1.0) and selection.best_step == 7
+    assert float(model.weight.detach()) == pytest.approx(2 * (1 - 0.9 ** 7), rel=1e-5)
+    assert selection.best == pytest.approx((2 * (1 - 0.9 ** 7) - 1) ** 2, rel=1e-4)
+    scores = [row["validation"] for row in curve]
+    assert len(scores) == 20 and min(scores) == pytest.approx(selection.best) and scores[-1] > 10 * selection.best
+    # interrupted after step 5 (before the optimum) and after step 12 (past it): the same result
+    for stop in (5, 12):
+        ckpt = tmp_path / f"ckpt{stop}.pt"
+        model, optimizer, step_fn, selection = _pulled_past_the_validation_optimum()
+        train(model, optimizer, step_fn, stop, checkpoint=Checkpoint(ckpt), log_every=1, selection=selection)
+        model, optimizer, step_fn, selection = _pulled_past_the_validation_optimum()  # a fresh process
+        train(model, optimizer, step_fn, 20, checkpoint=Checkpoint(ckpt, resume=True), log_every=1,
+              selection=selection)
+        assert selection.best_step == 7 and selection.first == pytest.approx(1.0), stop
+        assert float(model.weight.detach()) == pytest.approx(2 * (1 - 0.9 ** 7), rel=1e-5), stop
 
 
 def test_training_stops_on_nan():

@@ -27,6 +27,7 @@ import filecmp
 import importlib
 import re
 import shutil
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -51,6 +52,24 @@ def evenly_spaced(items, count: int):
         return items
     picks = np.linspace(0, len(items) - 1, count).round().astype(int)
     return items[picks] if isinstance(items, np.ndarray) else [items[i] for i in picks]
+
+
+def split_frames(frames: Sequence[int], max_frames: int, validation_frames: int) -> tuple[list[int], list[int]]:
+    """(training, validation) frames of one sequence (``train egodepth``, ``train animate``). Training: ``max_frames`` evenly spaced (all
+    when 0); validation: ``validation_frames`` evenly spaced among the frames training leaves. When
+    training takes every frame, the validation frames are set aside first, provided at least as
+    many remain to train on; otherwise there is no validation frame."""
+    frames = [int(f) for f in frames]
+    training = list(evenly_spaced(frames, max_frames))
+    rest = [f for f in frames if f not in set(training)]
+    if validation_frames <= 0:
+        return training, []
+    if rest:
+        return training, list(evenly_spaced(rest, validation_frames))
+    if len(frames) < 2 * validation_frames:
+        return training, []
+    validation = list(evenly_spaced(frames, validation_frames))
+    return list(evenly_spaced([f for f in frames if f not in set(validation)], max_frames)), validation
 
 
 @dataclass(frozen=True)

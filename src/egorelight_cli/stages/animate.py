@@ -25,7 +25,9 @@ with normal-filtered Chamfer pairs (:mod:`egorelight_cli.nn.mesh_losses`). ``xi`
 (set to zero) for a random ``depth_dropout`` fraction of the samples, so one network also
 works without depth (the ``--no-depth`` ablation); the paper's depth-agnostic student is the
 same network fine-tuned with ``xi = 0`` on the flat-lit frames of ``relight_train``
-(``train animate --no-depth --init MODEL``).
+(``train animate --no-depth --init MODEL``). With ``train.validation_frames`` (ours) frames are set
+aside and the model keeps the weights that score best on them (model selection; the paper trains a
+fixed schedule).
 """
 
 from __future__ import annotations
@@ -113,6 +115,8 @@ class TrainSettings:
 
     steps: int = _net("train.steps")
     finetune_steps: int | None = _net("train.finetune_steps")
+    validation_frames: int = _net("train.validation_frames")
+    validate_every: int = _net("train.validate_every")
     batch: int = _net("train.batch")
     lr: float = _net("train.lr")
     depth_dropout: float = _net("train.depth_dropout")
@@ -291,10 +295,13 @@ def animation_loss(model: AnimationModel, x: torch.Tensor, theta: torch.Tensor, 
 
 
 def train_animation_model(model: AnimationModel, data: TrainingData, settings: TrainSettings, no_depth: bool = False,
-                          checkpoint=None) -> list[dict]:
-    """Optimise ``model.net`` on ``data`` (see the module docstring); returns the curve."""
+                          checkpoint=None, validation: TrainingData | None = None) -> tuple[list[dict], dict]:
+    """Optimise ``model.net`` on ``data`` (see the module docstring); returns the curve and the
+    validation summary. With ``validation`` samples, the net ends with the weights whose mean
+    ``chamfer_delta_cm`` on them (with depth unless ``no_depth``) was lowest, scored before the
+    first step and every ``settings.validate_every`` steps."""
     from egorelight_cli.nn.distributed import rank_share
-    from egorelight_cli.nn.training import train
+    from egorelight_cli.nn.training import BestOnValidation, train
 
     S = len(data.frame_ids)
     if S == 0:
@@ -312,13 +319,21 @@ def train_animation_model(model: AnimationModel, data: TrainingData, settings: T
         return animation_loss(model, x.to(model.device), data.theta[rows].to(model.device),
                               [data.targets[r] for r in rows], [data.trees[r] for r in rows], settings)
 
-    return train(model.net, optimizer, step_fn, settings.steps, checkpoint=checkpoint, log_every=settings.log_every,
-                 scheduler=scheduler, desc="train animate")
+    selection = None
+    if validation is not None and len(validation.frame_ids):
+        selection = BestOnValidation(lambda: evaluate_chamfer(model, validation, settings, no_depth=no_depth),
+                                     max(1, settings.validate_every))
+    curve = train(model.net, optimizer, step_fn, settings.steps, checkpoint=checkpoint, log_every=settings.log_every,
+                  scheduler=scheduler, desc="train animate", selection=selection)
+    if selection is None:
+        return curve, {"validation_samples": 0}
+    return curve, {"validation_samples": int(len(validation.frame_ids)), "validation_chamfer_cm_start": selection.first,
+                   "validation_chamfer_cm_best": selection.best, "best_step": selection.best_step}
 
 
 def evaluate_chamfer(model: AnimationModel, data: TrainingData, settings: TrainSettings,
                      no_depth: bool = False) -> float:
-    """Mean ``chamfer_delta_cm`` of the model over all training samples (no gradients)."""
+    """Mean ``chamfer_delta_cm`` of the model over all samples of ``data`` (no gradients)."""
     values = []
     with torch.no_grad():
         for r in range(len(data.frame_ids)):

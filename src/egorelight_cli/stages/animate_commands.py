@@ -44,6 +44,7 @@ from egorelight_cli.io.motion import MOTION_PAYLOAD, load_motion
 from egorelight_cli.structures.motion import Motion
 from egorelight_cli.io.pointcloud import POINTCLOUD_PAYLOAD
 from egorelight_cli.pipeline import StageRun
+from egorelight_cli.sharding import split_frames
 from egorelight_cli.stages.character_commands import character_sources, load_character
 from egorelight_cli.structures.character import Character
 
@@ -191,16 +192,28 @@ class AnimateCommands:
             torch.manual_seed(settings.seed)
             model = init or AnimationModel(character, NetSettings.from_config(cfg), DepthSettings.from_config(cfg),
                                            device=device)
-            data = TrainingData.concatenate([
-                build_training_data(model, motion.theta, motion.frame_ids, per_frame, recon, settings)
-                for motion, per_frame in zip(motions, clouds)])
+            training_ids, validation_ids = split_frames(sorted(recon), 0, settings.validation_frames)
+            if settings.validation_frames > 0 and not validation_ids:
+                console.info(f"train animate: {len(recon)} frames are too few to set "
+                             f"{settings.validation_frames} aside for validation; training keeps the last weights")
+
+            def samples(frame_ids: list[int]) -> TrainingData:
+                part = {f: recon[f] for f in frame_ids}
+                return TrainingData.concatenate([
+                    build_training_data(model, motion.theta, motion.frame_ids, per_frame, part, settings)
+                    for motion, per_frame in zip(motions, clouds)])
+
+            data = samples(training_ids)
+            validation = samples(validation_ids) if validation_ids else None
             before = evaluate_chamfer(model, data, settings, no_depth=no_depth)
-            curve = train_animation_model(model, data, settings, no_depth=no_depth,
-                                          checkpoint=Checkpoint(checkpoint, writer.cache_key, resume))
+            curve, selected = train_animation_model(model, data, settings, no_depth=no_depth,
+                                                    checkpoint=Checkpoint(checkpoint, writer.cache_key, resume),
+                                                    validation=validation)
             after = evaluate_chamfer(model, data, settings, no_depth=no_depth)
             extra = {"eps_d": model.depth.eps_d, "eps_n": model.depth.eps_n, "num_vertices": character.num_vertices,
                      "num_nodes": character.graph.num_nodes, "no_depth": bool(no_depth), "sequence": sequence,
-                     "frames": [int(f) for f in data.frame_ids], "motions": [str(p) for p in motion_paths],
+                     "frames": [int(f) for f in data.frame_ids], "validation_frames": validation_ids,
+                     "motions": [str(p) for p in motion_paths],
                      "init": str(init_path) if init_path else None}
             write_model(writer.workdir, ModelPayload(ANIMATE_MODEL_TYPE, model.settings.to_dict(),
                                                      model.net.state_dict(), extra, curve),
@@ -209,8 +222,10 @@ class AnimateCommands:
                                    "steps": settings.steps,
                                    "no_depth": bool(no_depth), "frames_with_cloud": cloud_frames,
                                    "train_chamfer_cm_before": before, "train_chamfer_cm_after": after,
-                                   "final_loss": curve[-1]["loss"] if curve else None})
-            writer.units.update({"train_chamfer_cm": "cm (normal-filtered two-sided Chamfer, full mesh)"})
+                                   "final_loss": curve[-1]["loss"] if curve else None,
+                                   "validation_frames": len(validation_ids), **selected})
+            writer.units.update({"train_chamfer_cm": "cm (normal-filtered two-sided Chamfer, full mesh)",
+                                 "validation_chamfer_cm": "cm (the same, on the frames set aside, every motion)"})
 
         produced = self.run.produce(out, "model", write, inputs=inputs, source_files=sources)
         checkpoint.unlink(missing_ok=True)

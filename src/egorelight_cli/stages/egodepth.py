@@ -44,7 +44,7 @@ import numpy as np
 import torch
 
 from egorelight_cli.errors import EgorelightError
-from egorelight_cli.sharding import evenly_spaced
+from egorelight_cli.sharding import evenly_spaced, split_frames
 from egorelight_cli.geometry.cameras import Camera, invert_rigid, transform_points
 from egorelight_cli.geometry.depth import camera_ray_map, depth_edges, range_to_depth, render_depth, unproject_depth
 from egorelight_cli.geometry.pointcloud_ops import fixed_size_cloud, fuse_views
@@ -132,24 +132,6 @@ class TrainingView:
     supervised: np.ndarray
     near: np.ndarray
     stereo: np.ndarray | None = None
-
-
-def split_frames(frames: Sequence[int], max_frames: int, validation_frames: int) -> tuple[list[int], list[int]]:
-    """(training, validation) frames of one sequence. Training: ``max_frames`` evenly spaced (all
-    when 0); validation: ``validation_frames`` evenly spaced among the frames training leaves. When
-    training takes every frame, the validation frames are set aside first, provided at least as
-    many remain to train on; otherwise there is no validation frame."""
-    frames = [int(f) for f in frames]
-    training = list(evenly_spaced(frames, max_frames))
-    rest = [f for f in frames if f not in set(training)]
-    if validation_frames <= 0:
-        return training, []
-    if rest:
-        return training, list(evenly_spaced(rest, validation_frames))
-    if len(frames) < 2 * validation_frames:
-        return training, []
-    validation = list(evenly_spaced(frames, validation_frames))
-    return list(evenly_spaced([f for f in frames if f not in set(validation)], max_frames)), validation
 
 
 def supervision(capture: Capture, calibration: Calibration, sequences: Sequence[SequenceInfo], roles: Sequence[str],

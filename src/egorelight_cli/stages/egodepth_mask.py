@@ -5,7 +5,7 @@ Inference keeps a pixel's depth where the network's body probability is above a 
 metres off the body, so a handful of them dominate the point cloud's error: on the cpu capture a
 model trained on 64 frames kept 91 % body pixels at 0.5 and its `test` point-to-surface was
 3.67 cm, 0.71 cm at 0.9, while the 32-frame model was 99.7 % precise at 0.5 already. So
-``train egodepth`` sets frames aside (:func:`~egorelight_cli.stages.egodepth.split_frames`),
+``train egodepth`` sets frames aside (:func:`~egorelight_cli.sharding.split_frames`),
 measures on them, with every other inference filter applied, which share of the kept pixels the
 reconstruction shows as body (precision) and which share of the body pixels is kept (recall) at
 each of :data:`THRESHOLDS`, and stores the lowest threshold whose precision reaches
