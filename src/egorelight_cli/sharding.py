@@ -55,10 +55,12 @@ def evenly_spaced(items, count: int):
 
 
 def split_frames(frames: Sequence[int], max_frames: int, validation_frames: int) -> tuple[list[int], list[int]]:
-    """(training, validation) frames of one sequence (``train egodepth``, ``train animate``). Training: ``max_frames`` evenly spaced (all
-    when 0); validation: ``validation_frames`` evenly spaced among the frames training leaves. When
-    training takes every frame, the validation frames are set aside first, provided at least as
-    many remain to train on; otherwise there is no validation frame."""
+    """(training, validation) frames of one sequence (``train egodepth``, ``train animate``).
+
+    Training: ``max_frames`` evenly spaced (all when 0); validation: ``validation_frames`` evenly
+    spaced among the frames training leaves. When training takes every frame, the validation frames
+    are set aside first, provided at least as many remain to train on; otherwise there is no
+    validation frame."""
     frames = [int(f) for f in frames]
     training = list(evenly_spaced(frames, max_frames))
     rest = [f for f in frames if f not in set(training)]
