@@ -357,6 +357,21 @@ $(SUBJECT)/renders_truth/%/manifest.json: $(SUBJECT)/meshes_truth/%/manifest.jso
 		$(SUBJECT)/uvmaps_truth/%/manifest.json $(RELIGHT_MODEL) $(CHARACTER) $(CAPTURE)
 	$(call RELIGHT_OF,$(SUBJECT)/meshes_truth/$*,$(SUBJECT)/uvmaps_truth/$*,$*,$(SUBJECT)/renders_truth/$*)
 
+# renders_fit/<seq>: the same meshes from the true keypoints, each frame then deformed onto the TRUE
+# surface (animate --fit-truth, evaluation only): the row "with ground-truth meshes" in the character's
+# topology; what remains is the appearance model's own error.
+$(SUBJECT)/meshes_fit/%/manifest.json: $(SUBJECT)/motion_truth/%/manifest.json $(ANIMATE_STUDENT) $(CHARACTER) \
+		$(CAPTURE)
+	$(call STUDENT_FROM,$(SUBJECT)/motion_truth/$*,$*,$(SUBJECT)/meshes_fit/$*) --fit-truth
+
+$(SUBJECT)/uvmaps_fit/%/manifest.json: $(SUBJECT)/meshes_fit/%/manifest.json $(GEOLIFT_MODEL) $(CHARACTER) \
+		$(CAPTURE)
+	$(call GEOLIFT_OF,$(SUBJECT)/meshes_fit/$*,$*,$(SUBJECT)/uvmaps_fit/$*)
+
+$(SUBJECT)/renders_fit/%/manifest.json: $(SUBJECT)/meshes_fit/%/manifest.json \
+		$(SUBJECT)/uvmaps_fit/%/manifest.json $(RELIGHT_MODEL) $(CHARACTER) $(CAPTURE)
+	$(call RELIGHT_OF,$(SUBJECT)/meshes_fit/$*,$(SUBJECT)/uvmaps_fit/$*,$*,$(SUBJECT)/renders_fit/$*)
+
 # make relight-ablation (issue 18): the top-r rays r = 2 / 8 / 32 and SpecularNet without
 # cross-attention, each trained like the default model and scored on SEQ's held-out cameras
 RELIGHT_ABLATION := rays2 rays8 rays32 noattention
@@ -378,10 +393,12 @@ relight-ablation: $(SUBJECT)/renders/$(SEQ)/manifest.json \
 		$(foreach v,$(RELIGHT_ABLATION),$(SUBJECT)/renders_ablation/$(v)/manifest.json)
 	@$(BIN)/python -m egorelight_cli.report.table --keys psnr,ssim,diffuse_only_psnr,diffuse_only_ssim,lambert_psnr $^
 
-# both rows for SEQ; the truth row only where the capture has ground truth (known after synth runs)
+# every row for SEQ; the truth rows only where the capture has ground truth (known after synth runs)
 relight-rows: $(SUBJECT)/renders_studio/$(SEQ)/manifest.json
 	@if [ -f $(SUBJECT)/capture/groundtruth/$(SEQ)/keypoints.npz ]; then \
 		$(MAKE) --no-print-directory $(SUBJECT)/renders_truth/$(SEQ)/manifest.json; fi
+	@if [ -f $(SUBJECT)/capture/groundtruth/$(SEQ)/meshes.npz ]; then \
+		$(MAKE) --no-print-directory $(SUBJECT)/renders_fit/$(SEQ)/manifest.json; fi
 
 # ---------------------------------------------------------------- envmap (Sec. egocentric HDR environment map)
 # The front-camera panorama's colour model is fitted by inverse rendering of the relight avatar into

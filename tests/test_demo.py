@@ -27,7 +27,7 @@ CHAIN = {
     "models/egodepth": "model", "pointcloud/test": "pointcloud", "models/animate": "model",
     "meshes/test": "meshes", "models/geolift": "model", "uvmaps/test": "uvmaps", "models/relight": "model",
     "renders/test": "renders", "renders_studio/test": "renders", "renders_truth/test": "renders",
-    "envmap/wild": "envmap", "composite": "composite",
+    "meshes_fit/test": "meshes", "renders_fit/test": "renders", "envmap/wild": "envmap", "composite": "composite",
 }
 
 

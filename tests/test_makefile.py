@@ -26,6 +26,12 @@ def test_the_demo_relights_test_on_tracked_studio_and_true_keypoint_meshes(tmp_p
     truth = _dry_run(tmp_path, f"{tmp_path}/renders_truth/test/manifest.json")
     assert f"ik --in {tmp_path}/capture/groundtruth/test/keypoints.npz" in truth
     assert f"animate --no-depth --motion {tmp_path}/motion_truth/test" in truth
+    # the row on meshes fitted to the true surface, likewise only with a true surface
+    assert f"groundtruth/test/meshes.npz ]; then" in out and "renders_fit/test/manifest.json" in out
+    fit = _dry_run(tmp_path, f"{tmp_path}/renders_fit/test/manifest.json")
+    line = next(line for line in fit.splitlines() if f"--out {tmp_path}/meshes_fit/test" in line)
+    assert f"--motion {tmp_path}/motion_truth/test" in line and line.rstrip().endswith("--fit-truth")
+    assert f"--meshes {tmp_path}/meshes_fit/test --uvmaps {tmp_path}/uvmaps_fit/test" in fit
 
 
 def test_relight_ablation_trains_each_variant_and_prints_one_table(tmp_path):

@@ -183,6 +183,9 @@ STAGE_COMMANDS = (
                                 required=False)),
             options=(sequence("test", "Sequence name (ground truth, ego images)."),
                      Option("--no-depth", "no_depth", "Motion-only ablation (xi = 0).", type=bool, default=False),
+                     Option("--fit-truth", "fit_truth", "Evaluation only: deform each frame towards the capture's "
+                            "ground-truth surface (the relight row with true geometry; stages/animate_fit.py).",
+                            type=bool, default=False),
                      Option("--export", "export", "Also write one mesh file per frame under export/.",
                             type=("none", "ply", "obj"), config_key="export"))),
     Command(("train", "geolift"), "geolift",

@@ -268,7 +268,15 @@ def animation_loss(model: AnimationModel, x: torch.Tensor, theta: torch.Tensor, 
                    settings: TrainSettings) -> dict[str, torch.Tensor]:
     """The supplement's loss for one batch; returns every term and their weighted sum ``loss``."""
     alpha, beta, off = model.net(x, model.node_uv, model.vertex_uv)
-    B = x.shape[0]
+    return deformation_loss(model, theta, alpha, beta, off, targets, trees, settings)
+
+
+def deformation_loss(model: AnimationModel, theta: torch.Tensor, alpha: torch.Tensor, beta: torch.Tensor,
+                     off: torch.Tensor, targets: list, trees: list, settings: TrainSettings) -> dict[str, torch.Tensor]:
+    """The supplement's loss of given deformations: theta (B,D), alpha / beta (B,N,3) rad / m, off
+    (B,V,3) m against per-sample targets ``(points, normals)`` and their KD-trees; every term and
+    their weighted sum ``loss``."""
+    B = theta.shape[0]
     both, canonical = model.pose(torch.cat([theta, theta]), torch.cat([alpha, alpha]), torch.cat([beta, beta]),
                                  torch.cat([torch.zeros_like(off), off]))
     v_eg, v_delta = both[:B], both[B:]

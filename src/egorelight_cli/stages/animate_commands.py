@@ -234,7 +234,7 @@ class AnimateCommands:
     # ----------------------------------------------------------------------------- animate
     def animate(self, motion_path: Path, pointcloud_path: Path | None, model_path: Path, character_spec: str,
                 capture_path: Path | None, sequence: str, calibration_path: Path | None, no_depth: bool,
-                export: str | None, out: Path) -> Path:
+                export: str | None, out: Path, fit_truth: bool = False) -> Path:
         character, character_artifact = load_character(character_spec)
         (motion_artifact,), cloud_artifact, lone = _motion_and_cloud_artifacts([motion_path], pointcloud_path, no_depth)
         model_artifact = open_artifact(model_path, kind="model")
@@ -247,6 +247,8 @@ class AnimateCommands:
         inputs = [a for a in (character_artifact, motion_artifact, cloud_artifact, model_artifact, capture_artifact,
                               calibration_artifact) if a is not None]
         sources = character_sources(character_spec, character_artifact) + lone
+        if fit_truth:
+            sources.append(_truth_file(capture, capture_path, sequence))
         if self.run.up_to_date(out, "meshes", inputs, sources):
             return Path(out)
         from egorelight_cli.stages.animate import previous_rows
@@ -262,8 +264,11 @@ class AnimateCommands:
             started = time.perf_counter()
             uv_inputs, xi_mask, template = model.uv_inputs(motion.theta, previous_rows(motion.frame_ids), clouds)
             meshes = model.mesh_sequence(uv_inputs, motion.theta, motion.frame_ids, motion.fps)
+            if fit_truth:
+                meshes = _fit_truth(writer, capture, sequence, model, meshes, calibration, cfg)
             elapsed = time.perf_counter() - started
-            save_meshes(writer, meshes, name=None, source="animate", no_depth=bool(no_depth))
+            save_meshes(writer, meshes, name=None, source="animate --fit-truth" if fit_truth else "animate",
+                        no_depth=bool(no_depth))
             writer.timing["frames_per_s"] = round(motion.num_frames / max(elapsed, 1e-9), 2)
             writer.metrics.update({"frames": motion.num_frames, "no_depth": bool(no_depth),
                                    "frames_with_cloud": cloud_frames,
@@ -284,6 +289,36 @@ class AnimateCommands:
 
 
 # ---------------------------------------------------------------------------------- scoring
+def _truth_file(capture: Capture | None, capture_path: Path | None, sequence: str) -> Path:
+    """The true surface ``--fit-truth`` fits to; a one-line error without it."""
+    if capture is None:
+        raise EgorelightError("--fit-truth needs --capture (a simulated capture with ground truth)")
+    path = capture.groundtruth_file(sequence, "meshes.npz")
+    if path is None:
+        raise EgorelightError(f"--fit-truth needs the ground-truth surface of sequence {sequence!r} "
+                              "(groundtruth/<seq>/meshes.npz), which this capture does not have", capture_path)
+    return Path(path)
+
+
+def _fit_truth(writer: ArtifactWriter, capture: Capture, sequence: str, model: AnimationModel, meshes: MeshSequence,
+               calibration, cfg: Config) -> MeshSequence:
+    """``meshes`` deformed towards the true surface (:mod:`egorelight_cli.stages.animate_fit`), in
+    the frame of ``calibration``'s head poses when given (as :func:`_score` takes it)."""
+    from egorelight_cli.stages.animate import TrainSettings
+    from egorelight_cli.stages.animate_eval import groundtruth_meshes
+    from egorelight_cli.stages.animate_fit import FitSettings, fit_to_truth, true_targets
+    from egorelight_cli.synth.groundtruth import T_pose_frame_from_truth_world
+
+    settings = FitSettings.from_config(cfg)
+    T = (np.eye(4) if calibration is None
+         else T_pose_frame_from_truth_world(capture.groundtruth_root(), calibration, sequence))
+    targets = true_targets(groundtruth_meshes(capture, sequence), meshes.frame_ids, settings.target_points, T)
+    fitted, summary = fit_to_truth(model, meshes, targets, TrainSettings.from_config(cfg), settings)
+    writer.metrics.update({**summary, "fitted_to_groundtruth": True})
+    writer.units.update({"fit_chamfer_cm": "cm, normal-filtered Chamfer to the true outer surface (--fit-truth)"})
+    return fitted
+
+
 def _score(writer: ArtifactWriter, capture: Capture, sequence: str, model: AnimationModel, meshes: MeshSequence,
            template, uv_inputs: torch.Tensor, no_depth: bool, preview_count: int,
            pose_calibration=None) -> dict[int, np.ndarray] | None:
@@ -445,6 +480,7 @@ def train_command(run: StageRun, capture: Path, motion: tuple[Path, ...], pointc
 
 
 def animate_command(run: StageRun, motion: Path, pointcloud: Path | None, model: Path, character: str,
-                    capture: Path | None, calibration: Path | None, sequence: str, no_depth: bool, out: Path) -> Path:
+                    capture: Path | None, calibration: Path | None, sequence: str, no_depth: bool, fit_truth: bool,
+                    out: Path) -> Path:
     return AnimateCommands(run).animate(motion, pointcloud, model, character, capture, sequence, calibration, no_depth,
-                                        None, out)
+                                        None, out, fit_truth)

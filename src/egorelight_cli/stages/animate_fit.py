@@ -1,0 +1,132 @@
+"""Evaluation only: the character's mesh fitted to a simulated capture's true surface, per frame.
+
+``animate --fit-truth`` (issue 18's "with ground-truth meshes" relight row). The appearance stages
+need meshes in the character's topology; a simulated subject's true surface has its own (garment
+sheets over a body of another tessellation), so the truth cannot be handed to them as it is. This
+module deforms the animate prediction of each frame towards the truth with the same
+parameterisation the network drives (embedded-graph rotations ``alpha`` and translations ``beta``,
+per-vertex canonical offsets ``o``, posed by the frame's motion) and the same loss it is trained
+with (:func:`~egorelight_cli.stages.animate.deformation_loss`: normal-filtered Chamfer plus the ARAP,
+smoothness and isometry terms), the true outer surface
+(:func:`~egorelight_cli.stages.animate_eval.outer_faces`) in the reconstruction's place. What is
+left between the fitted meshes and the truth is what the character's topology and the
+regularisers cannot follow; relit renders from them isolate the appearance model from tracking
+error.
+
+Nothing on a stage's input path reads this: it needs ``capture/groundtruth/<seq>/meshes.npz``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import partial
+
+import numpy as np
+import torch
+from scipy.spatial import cKDTree
+
+from egorelight_cli import console
+from egorelight_cli.config import Config, setting, settings_from_config
+from egorelight_cli.geometry.cameras import transform_points
+from egorelight_cli.geometry.normals import vertex_normals
+from egorelight_cli.structures.mesh_sequence import MeshSequence, SurfaceSequence
+
+_fit = partial(setting, "animate")
+
+
+@dataclass(frozen=True)
+class FitSettings:
+    """``fit_truth.*``: Adam on the deformation parameters (in network output units) of a chunk of
+    frames at a time."""
+
+    steps: int = _fit("fit_truth.steps")
+    lr: float = _fit("fit_truth.lr")
+    chunk: int = _fit("fit_truth.chunk")
+    target_points: int = _fit("fit_truth.target_points")
+
+    @classmethod
+    def from_config(cls, cfg: Config) -> "FitSettings":
+        return settings_from_config(cls, cfg)
+
+
+def true_targets(truth: SurfaceSequence, frame_ids: np.ndarray, count: int, T_pose_frame_from_truth: np.ndarray,
+                 seed: int = 0) -> dict[int, tuple[torch.Tensor, torch.Tensor]]:
+    """Frame id -> ``(points (M,3), unit normals (M,3))`` float32: up to ``count`` vertices of the
+    true outer surface of each frame of ``frame_ids`` the truth has, in the frame of the meshes
+    (``T_pose_frame_from_truth`` (4,4) applied)."""
+    from egorelight_cli.stages.animate_eval import outer_faces
+
+    rng = np.random.default_rng(seed)
+    out = {}
+    for fid in np.asarray(frame_ids):
+        if int(fid) not in truth.frame_ids:
+            continue
+        vertices = transform_points(T_pose_frame_from_truth, truth.vertices[truth.index_of(int(fid))].astype(np.float64))
+        faces = truth.faces[outer_faces(vertices, truth.faces)]
+        used = np.unique(faces)
+        normals = vertex_normals(vertices, faces)[used]
+        keep = np.arange(len(used)) if len(used) <= count else rng.choice(len(used), count, replace=False)
+        out[int(fid)] = (torch.as_tensor(vertices[used][keep], dtype=torch.float32),
+                         torch.as_tensor(normals[keep], dtype=torch.float32))
+    return out
+
+
+def fit_to_truth(model, meshes: MeshSequence, targets: dict[int, tuple[torch.Tensor, torch.Tensor]],
+                 train_settings, settings: FitSettings) -> tuple[MeshSequence, dict[str, float]]:
+    """Each frame of ``meshes`` with a target deformed towards it (see the module docstring).
+
+    Args:
+        model: the :class:`~egorelight_cli.stages.animate.AnimationModel` (its character and output
+            scales; the network is not run).
+        meshes: the prediction to start from (its theta, alpha, beta, offsets).
+        targets: :func:`true_targets`.
+        train_settings: the animate ``TrainSettings`` (loss weights, Chamfer filters).
+    Returns:
+        ``(fitted meshes, {"fit_frames", "fit_chamfer_cm_before", "fit_chamfer_cm_after"})``; frames
+        without a target keep the prediction.
+    """
+    from egorelight_cli.stages.animate import deformation_loss
+
+    rot_scale, trans_scale, off_scale = model.net.scales
+    rows = [r for r, f in enumerate(meshes.frame_ids) if int(f) in targets]
+    alpha, beta, offsets = (meshes.eg_rotation.copy(), meshes.eg_translation.copy(), meshes.offsets.copy())
+    before, after = [], []
+    for start in range(0, len(rows), max(1, settings.chunk)):
+        chunk = rows[start:start + settings.chunk]
+        pairs = [targets[int(meshes.frame_ids[r])] for r in chunk]
+        trees = [cKDTree(p.numpy().astype(np.float64)) for p, _ in pairs]
+        pairs = [(p.to(model.device), n.to(model.device)) for p, n in pairs]
+        theta = torch.as_tensor(meshes.theta[chunk], dtype=torch.float32, device=model.device)
+        params = [torch.tensor(value[chunk] / scale, dtype=torch.float32, device=model.device, requires_grad=True)
+                  for value, scale in ((alpha, rot_scale), (beta, trans_scale), (offsets, off_scale))]
+        optimizer = torch.optim.Adam(params, lr=settings.lr)
+
+        def loss() -> dict[str, torch.Tensor]:
+            return deformation_loss(model, theta, params[0] * rot_scale, params[1] * trans_scale,
+                                    params[2] * off_scale, pairs, trees, train_settings)
+
+        for step in range(settings.steps):
+            optimizer.zero_grad()
+            terms = loss()
+            if step == 0:
+                before.append(float(terms["chamfer_delta_cm"].detach()) * len(chunk))
+            terms["loss"].backward()
+            optimizer.step()
+        with torch.no_grad():
+            after.append(float(loss()["chamfer_delta_cm"]) * len(chunk))
+            for value, p, scale in zip((alpha, beta, offsets), params, (rot_scale, trans_scale, off_scale)):
+                value[chunk] = (p * scale).cpu().numpy()
+        console.info(f"animate --fit-truth: {start + len(chunk)} of {len(rows)} frames")
+    with torch.no_grad():
+        vertices = meshes.vertices.copy()
+        for start in range(0, len(rows), max(1, settings.chunk)):
+            chunk = rows[start:start + settings.chunk]
+            theta = torch.as_tensor(meshes.theta[chunk], dtype=torch.float32, device=model.device)
+            posed, _ = model.pose(theta, *(torch.as_tensor(v[chunk], device=model.device)
+                                           for v in (alpha, beta, offsets)))
+            vertices[chunk] = posed.cpu().numpy()
+    fitted = MeshSequence(vertices, meshes.faces, meshes.theta, alpha, beta, offsets, meshes.frame_ids, meshes.fps,
+                          meshes.ego_frame_ids)
+    n = max(len(rows), 1)
+    return fitted, {"fit_frames": len(rows), "fit_chamfer_cm_before": sum(before) / n if rows else None,
+                    "fit_chamfer_cm_after": sum(after) / n if rows else None}

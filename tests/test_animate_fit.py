@@ -1,0 +1,112 @@
+"""``animate --fit-truth`` (stages/animate_fit.py): the character's mesh deformed onto a true surface."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from egorelight_cli.geometry.cameras import transform_points
+from egorelight_cli.geometry.depth_encoding import skinned_template
+from egorelight_cli.structures.mesh_sequence import MeshSequence, SurfaceSequence
+
+
+@pytest.fixture(scope="module")
+def skinning(character):
+    """An untrained (zero-output) animate model and its skinned prediction of two posed frames."""
+    from egorelight_cli.stages.animate import AnimationModel, DepthSettings, NetSettings
+
+    rng = np.random.default_rng(5)
+    theta = np.tile(character.rest_theta, (2, 1)).astype(np.float64)
+    theta[:, 6:] += rng.normal(scale=0.1, size=theta[:, 6:].shape)
+    model = AnimationModel(character, NetSettings(uv_resolution=32, base_channels=4, hidden=8), DepthSettings())
+    vertices = skinned_template(character, theta).vertices.astype(np.float32)
+    N, V = character.graph.num_nodes, character.num_vertices
+    meshes = MeshSequence(vertices, character.faces, theta, np.zeros((2, N, 3)), np.zeros((2, N, 3)),
+                          np.zeros((2, V, 3)), np.array([3, 4]), 10.0)
+    return model, meshes
+
+
+def _settings(steps: int):
+    from egorelight_cli.stages.animate import TrainSettings
+    from egorelight_cli.stages.animate_fit import FitSettings
+
+    return TrainSettings(), FitSettings(steps=steps, lr=0.05, chunk=8, target_points=6000)
+
+
+def test_a_surface_moved_1_cm_is_followed_to_a_millimetre(character, skinning):
+    from egorelight_cli.stages.animate_fit import fit_to_truth, true_targets
+
+    model, meshes = skinning
+    shift = np.eye(4)
+    shift[:3, 3] = [0.004, 0.01, -0.003]  # 1.1 cm, well inside the Chamfer's 8 cm pair cut
+    moved = transform_points(shift, meshes.vertices.astype(np.float64))
+    truth = SurfaceSequence(moved[:1], character.faces, meshes.frame_ids[:1])  # the truth has frame 3 only
+    targets = true_targets(truth, meshes.frame_ids, 6000, np.eye(4))
+    assert sorted(targets) == [3]
+    fitted, summary = fit_to_truth(model, meshes, targets, *_settings(120))
+    assert summary["fit_frames"] == 1
+    assert summary["fit_chamfer_cm_after"] < 0.25 * summary["fit_chamfer_cm_before"]
+    assert 0.3 < summary["fit_chamfer_cm_before"] < 1.2  # point-to-plane: ~|cos| of the shift
+    error_cm = 100 * np.linalg.norm(fitted.vertices[0] - moved[0], axis=1)
+    assert np.median(error_cm) < 0.1 and error_cm.mean() < 0.2
+    # the frame without a truth keeps its prediction, and the arrays stay one consistent posing
+    np.testing.assert_array_equal(fitted.vertices[1], meshes.vertices[1])
+    reposed, _ = model.pose(torch.as_tensor(fitted.theta[:1], dtype=torch.float32),
+                            *(torch.as_tensor(a[:1]) for a in (fitted.eg_rotation, fitted.eg_translation,
+                                                               fitted.offsets)))
+    np.testing.assert_allclose(reposed.numpy()[0], fitted.vertices[0], atol=1e-5)
+
+
+def test_the_targets_are_taken_into_the_frame_of_the_meshes(character, skinning):
+    from egorelight_cli.stages.animate_fit import true_targets
+
+    _, meshes = skinning
+    truth = SurfaceSequence(meshes.vertices, character.faces, meshes.frame_ids)
+    T = np.eye(4)
+    T[:3, 3] = [1.0, -2.0, 0.5]
+    plain = true_targets(truth, meshes.frame_ids, 500, np.eye(4), seed=1)
+    moved = true_targets(truth, meshes.frame_ids, 500, T, seed=1)
+    for fid in (3, 4):
+        np.testing.assert_allclose(moved[fid][0].numpy(), plain[fid][0].numpy() + T[:3, 3], atol=1e-5)
+        np.testing.assert_allclose(np.linalg.norm(moved[fid][1].numpy(), axis=1), 1.0, atol=1e-5)
+
+
+def _run(*args) -> int:
+    from egorelight_cli.cli import main
+
+    try:
+        main([str(a) for a in args])
+    except SystemExit as exc:
+        return int(exc.code or 0)
+    return 0
+
+
+def test_fit_truth_on_tiny_lands_on_the_true_surface(tiny_capture, tmp_path, capsys):
+    """A no-depth model (zero output: skinning) fitted to the tiny capture's truth, 40 steps."""
+    gt = Path(tiny_capture) / "groundtruth"
+    model = tmp_path / "model"
+    assert _run("--preset", "tiny", "-q", "--set", "train.steps=1", "train", "animate", "--capture", tiny_capture,
+                "--motion", gt / "ego_train" / "motion.npz", "--no-depth", "--out", model) == 0
+    out = tmp_path / "meshes_fit"
+    assert _run("--preset", "tiny", "-q", "--set", "fit_truth.steps=40", "animate", "--no-depth", "--motion",
+                gt / "test" / "motion.npz", "--model", model, "--capture", tiny_capture, "--fit-truth",
+                "--out", out) == 0
+    manifest = json.loads((out / "manifest.json").read_text())
+    metrics = manifest["metrics"]
+    assert metrics["fitted_to_groundtruth"] is True and metrics["fit_frames"] == metrics["eval_frames"] > 0
+    assert metrics["fit_chamfer_cm_after"] < 0.5 * metrics["fit_chamfer_cm_before"]
+    # the written meshes (scored as no_depth) lie far closer to the truth than skinning, both ways
+    for measure in ("pred_to_true", "true_to_pred"):
+        assert metrics[f"no_depth_p2s_{measure}_cm"] < 0.6 * metrics[f"skinning_p2s_{measure}_cm"], measure
+    assert manifest["config"]["options"]["fit_truth"] is True
+    # without a capture to fit to: one line, exit 2, nothing written
+    capsys.readouterr()
+    code = _run("--preset", "tiny", "animate", "--no-depth", "--motion", gt / "test" / "motion.npz", "--model", model,
+                "--fit-truth", "--out", tmp_path / "nothing")
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and err[0].startswith("egorelight: error: ") and "--fit-truth" in err[0]
+    assert not (tmp_path / "nothing").exists()
