@@ -167,6 +167,26 @@ def test_geolift_writes_uvmaps_with_lighting_features_and_scores(tiny_capture, s
     assert json.loads((out / "manifest.json").read_text())["metrics"]["sequence"] == "relight_train"
 
 
+def test_the_baseline_maps_in_the_networks_place_score_as_the_baselines(tiny_capture, skinned_meshes,
+                                                                        trained_geolift, tmp_path, run):
+    """``predict.normals=coarse`` / ``predict.texture=mean`` (the paper's "w/o GeoLiftingNet"): the
+    uvmaps carry the baselines, so each map's error is its baseline's."""
+    meshes_path = skinned_meshes / "test.npz"
+    result = run("--preset", "tiny", "--set", "predict.normals=coarse", "--set", "predict.texture=mean", "geolift",
+                 "--meshes", meshes_path, "--model", trained_geolift, "--capture", tiny_capture, "--seq", "test",
+                 "--out", tmp_path / "baseline")
+    assert result.returncode == 0, result.stderr
+    metrics = json.loads((tmp_path / "baseline" / "manifest.json").read_text())["metrics"]
+    assert metrics["normals_from"] == "coarse" and metrics["texture_from"] == "mean"
+    for key, baseline in (("normal_deg", "normal_deg_coarse"), ("normal_deg_uv", "normal_deg_uv_coarse"),
+                          ("texture_l1", "texture_l1_mean_texture"), ("texture_l1_uv", "texture_l1_uv_mean_texture")):
+        assert metrics[key] == pytest.approx(metrics[baseline], rel=1e-6), key
+    result = run("--preset", "tiny", "--set", "predict.normals=true", "geolift", "--meshes", meshes_path, "--model",
+                 trained_geolift, "--out", tmp_path / "bad")
+    assert result.returncode == 2 and "predict.normals" in result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1 and not (tmp_path / "bad").exists()
+
+
 def test_train_geolift_pairs_meshes_with_sequences(tiny_capture, skinned_meshes, tmp_path, run):
     result = run("--preset", "tiny", "train", "geolift", "--capture", tiny_capture, "--meshes",
                  skinned_meshes / "relight_train.npz", "--meshes", skinned_meshes / "ego_train.npz", "--seq",

@@ -74,6 +74,10 @@ def write_uvmaps(writer: ArtifactWriter, cfg: Config, model: GeoLiftNet, extra: 
         f = int(meshes.frame_ids[t])
         started = time.perf_counter()
         normals, texture = gl.predict_maps(model, coarse, t)
+        if str(cfg.predict.normals) == "coarse":
+            normals = normal_maps[t]
+        if str(cfg.predict.texture) == "mean":
+            texture = mean_texture
         timing["network_s"] += time.perf_counter() - started
         layers = {"normal": np.moveaxis(normals, 0, -1) * coverage[..., None],
                   "albedo": np.moveaxis(texture, 0, -1) * coverage[..., None],
@@ -107,6 +111,7 @@ def write_uvmaps(writer: ArtifactWriter, cfg: Config, model: GeoLiftNet, extra: 
     writer.metrics.update({"frames": T, "sequence": sequence.name if sequence is not None else None,
                            "flat_scale": float(extra.get("flat_scale", 1.0)),
                            "uv_resolution": int(extra["uv_resolution"]), "frames_with_lighting_features": featured,
+                           "normals_from": str(cfg.predict.normals), "texture_from": str(cfg.predict.texture),
                            "preview_columns": "coarse normals | GeoLift normals | flat-lit texture | true normals"})
     if truth is not None and truth.available:
         writer.metrics.update(scores.metrics())
