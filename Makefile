@@ -349,14 +349,6 @@ $(SUBJECT)/meshes_truth/%/manifest.json: $(SUBJECT)/motion_truth/%/manifest.json
 		$(CAPTURE)
 	$(call STUDENT_FROM,$(SUBJECT)/motion_truth/$*,$*,$(SUBJECT)/meshes_truth/$*)
 
-$(SUBJECT)/uvmaps_truth/%/manifest.json: $(SUBJECT)/meshes_truth/%/manifest.json $(GEOLIFT_MODEL) $(CHARACTER) \
-		$(CAPTURE)
-	$(call GEOLIFT_OF,$(SUBJECT)/meshes_truth/$*,$*,$(SUBJECT)/uvmaps_truth/$*)
-
-$(SUBJECT)/renders_truth/%/manifest.json: $(SUBJECT)/meshes_truth/%/manifest.json \
-		$(SUBJECT)/uvmaps_truth/%/manifest.json $(RELIGHT_MODEL) $(CHARACTER) $(CAPTURE)
-	$(call RELIGHT_OF,$(SUBJECT)/meshes_truth/$*,$(SUBJECT)/uvmaps_truth/$*,$*,$(SUBJECT)/renders_truth/$*)
-
 # renders_fit/<seq>: the same meshes from the true keypoints, each frame then deformed onto the TRUE
 # surface (animate --fit-truth, evaluation only): the row "with ground-truth meshes" in the character's
 # topology; what remains is the appearance model's own error.
@@ -364,13 +356,17 @@ $(SUBJECT)/meshes_fit/%/manifest.json: $(SUBJECT)/motion_truth/%/manifest.json $
 		$(CAPTURE)
 	$(call STUDENT_FROM,$(SUBJECT)/motion_truth/$*,$*,$(SUBJECT)/meshes_fit/$*) --fit-truth
 
-$(SUBJECT)/uvmaps_fit/%/manifest.json: $(SUBJECT)/meshes_fit/%/manifest.json $(GEOLIFT_MODEL) $(CHARACTER) \
-		$(CAPTURE)
-	$(call GEOLIFT_OF,$(SUBJECT)/meshes_fit/$*,$*,$(SUBJECT)/uvmaps_fit/$*)
+# uvmaps_<row>/<seq> and renders_<row>/<seq> of the meshes_<row>/<seq> of an evaluation row
+define RELIGHT_ROW_RULES
+$$(SUBJECT)/uvmaps_$(1)/%/manifest.json: $$(SUBJECT)/meshes_$(1)/%/manifest.json $$(GEOLIFT_MODEL) $$(CHARACTER) \
+		$$(CAPTURE)
+	$$(call GEOLIFT_OF,$$(SUBJECT)/meshes_$(1)/$$*,$$*,$$(SUBJECT)/uvmaps_$(1)/$$*)
 
-$(SUBJECT)/renders_fit/%/manifest.json: $(SUBJECT)/meshes_fit/%/manifest.json \
-		$(SUBJECT)/uvmaps_fit/%/manifest.json $(RELIGHT_MODEL) $(CHARACTER) $(CAPTURE)
-	$(call RELIGHT_OF,$(SUBJECT)/meshes_fit/$*,$(SUBJECT)/uvmaps_fit/$*,$*,$(SUBJECT)/renders_fit/$*)
+$$(SUBJECT)/renders_$(1)/%/manifest.json: $$(SUBJECT)/meshes_$(1)/%/manifest.json \
+		$$(SUBJECT)/uvmaps_$(1)/%/manifest.json $$(RELIGHT_MODEL) $$(CHARACTER) $$(CAPTURE)
+	$$(call RELIGHT_OF,$$(SUBJECT)/meshes_$(1)/$$*,$$(SUBJECT)/uvmaps_$(1)/$$*,$$*,$$(SUBJECT)/renders_$(1)/$$*)
+endef
+$(foreach row,truth fit,$(eval $(call RELIGHT_ROW_RULES,$(row))))
 
 # make relight-ablation (issue 18): the top-r rays r = 2 / 8 / 32 and SpecularNet without
 # cross-attention, each trained like the default model and scored on SEQ's held-out cameras

@@ -12,6 +12,7 @@ import torch
 from egorelight_cli.geometry.cameras import transform_points
 from egorelight_cli.geometry.depth_encoding import skinned_template
 from egorelight_cli.structures.mesh_sequence import MeshSequence, SurfaceSequence
+from tiny_models import cli_exit_code as _run
 
 
 @pytest.fixture(scope="module")
@@ -73,16 +74,6 @@ def test_the_targets_are_taken_into_the_frame_of_the_meshes(character, skinning)
     for fid in (3, 4):
         np.testing.assert_allclose(moved[fid][0].numpy(), plain[fid][0].numpy() + T[:3, 3], atol=1e-5)
         np.testing.assert_allclose(np.linalg.norm(moved[fid][1].numpy(), axis=1), 1.0, atol=1e-5)
-
-
-def _run(*args) -> int:
-    from egorelight_cli.cli import main
-
-    try:
-        main([str(a) for a in args])
-    except SystemExit as exc:
-        return int(exc.code or 0)
-    return 0
 
 
 def test_fit_truth_on_tiny_lands_on_the_true_surface(tiny_capture, tmp_path, capsys):

@@ -87,9 +87,10 @@ def fit_to_truth(model, meshes: MeshSequence, targets: dict[int, tuple[torch.Ten
     """
     from egorelight_cli.stages.animate import deformation_loss
 
-    rot_scale, trans_scale, off_scale = model.net.scales
+    scales = model.net.scales  # rotation, translation, offset
     rows = [r for r, f in enumerate(meshes.frame_ids) if int(f) in targets]
-    alpha, beta, offsets = (meshes.eg_rotation.copy(), meshes.eg_translation.copy(), meshes.offsets.copy())
+    fitted = [meshes.eg_rotation.copy(), meshes.eg_translation.copy(), meshes.offsets.copy()]
+    vertices = meshes.vertices.copy()
     before, after = [], []
     for start in range(0, len(rows), max(1, settings.chunk)):
         chunk = rows[start:start + settings.chunk]
@@ -98,12 +99,14 @@ def fit_to_truth(model, meshes: MeshSequence, targets: dict[int, tuple[torch.Ten
         pairs = [(p.to(model.device), n.to(model.device)) for p, n in pairs]
         theta = torch.as_tensor(meshes.theta[chunk], dtype=torch.float32, device=model.device)
         params = [torch.tensor(value[chunk] / scale, dtype=torch.float32, device=model.device, requires_grad=True)
-                  for value, scale in ((alpha, rot_scale), (beta, trans_scale), (offsets, off_scale))]
+                  for value, scale in zip(fitted, scales)]
         optimizer = torch.optim.Adam(params, lr=settings.lr)
 
+        def physical() -> list[torch.Tensor]:
+            return [p * scale for p, scale in zip(params, scales)]
+
         def loss() -> dict[str, torch.Tensor]:
-            return deformation_loss(model, theta, params[0] * rot_scale, params[1] * trans_scale,
-                                    params[2] * off_scale, pairs, trees, train_settings)
+            return deformation_loss(model, theta, *physical(), pairs, trees, train_settings)
 
         for step in range(settings.steps):
             optimizer.zero_grad()
@@ -114,19 +117,16 @@ def fit_to_truth(model, meshes: MeshSequence, targets: dict[int, tuple[torch.Ten
             optimizer.step()
         with torch.no_grad():
             after.append(float(loss()["chamfer_delta_cm"]) * len(chunk))
-            for value, p, scale in zip((alpha, beta, offsets), params, (rot_scale, trans_scale, off_scale)):
-                value[chunk] = (p * scale).cpu().numpy()
+            deformation = physical()
+            vertices[chunk] = model.pose(theta, *deformation)[0].cpu().numpy()
+            for value, part in zip(fitted, deformation):
+                value[chunk] = part.cpu().numpy()
         console.info(f"animate --fit-truth: {start + len(chunk)} of {len(rows)} frames")
-    with torch.no_grad():
-        vertices = meshes.vertices.copy()
-        for start in range(0, len(rows), max(1, settings.chunk)):
-            chunk = rows[start:start + settings.chunk]
-            theta = torch.as_tensor(meshes.theta[chunk], dtype=torch.float32, device=model.device)
-            posed, _ = model.pose(theta, *(torch.as_tensor(v[chunk], device=model.device)
-                                           for v in (alpha, beta, offsets)))
-            vertices[chunk] = posed.cpu().numpy()
-    fitted = MeshSequence(vertices, meshes.faces, meshes.theta, alpha, beta, offsets, meshes.frame_ids, meshes.fps,
+    result = MeshSequence(vertices, meshes.faces, meshes.theta, *fitted, meshes.frame_ids, meshes.fps,
                           meshes.ego_frame_ids)
-    n = max(len(rows), 1)
-    return fitted, {"fit_frames": len(rows), "fit_chamfer_cm_before": sum(before) / n if rows else None,
-                    "fit_chamfer_cm_after": sum(after) / n if rows else None}
+
+    def mean(per_frame_sums: list[float]) -> float | None:
+        return sum(per_frame_sums) / len(rows) if rows else None
+
+    return result, {"fit_frames": len(rows), "fit_chamfer_cm_before": mean(before),
+                    "fit_chamfer_cm_after": mean(after)}

@@ -69,11 +69,12 @@ def write_uvmaps(writer: ArtifactWriter, cfg: Config, model: GeoLiftNet, extra: 
     if not frame_range.whole:
         writer.extra["shard"] = frame_range.manifest(T)
     rows, timing = {}, {"network_s": 0.0, "features_s": 0.0}
+    network_used = "geolift" in (str(cfg.predict.normals), str(cfg.predict.texture))  # else both maps are baselines
     featured = 0
     for t in console.progress(range(start, stop), total=stop - start, desc="geolift"):
         f = int(meshes.frame_ids[t])
         started = time.perf_counter()
-        normals, texture = gl.predict_maps(model, coarse, t)
+        normals, texture = gl.predict_maps(model, coarse, t) if network_used else (None, None)
         if str(cfg.predict.normals) == "coarse":
             normals = normal_maps[t]
         if str(cfg.predict.texture) == "mean":
