@@ -329,20 +329,22 @@ $(RELIGHT_MODEL): $(RELIGHT_TRAIN_INPUTS)
 
 # relit renders of meshes + their uvmaps: $(1) meshes, $(2) uvmaps, $(3) sequence, $(4) output,
 # $(5) the relight model (default models/relight), $(6) extra options (a shard)
+# (the calibration's head poses place the worn headset, which the scores exclude with the head)
 RELIGHT_OF = $(EGO) $(EGOFLAGS) relight --capture $(SUBJECT)/capture --meshes $(1) --uvmaps $(2) \
-	--model $(or $(5),$(SUBJECT)/models/relight) --character $(SUBJECT)/character --seq $(3) $(6) --out $(4)
+	--model $(or $(5),$(SUBJECT)/models/relight) --character $(SUBJECT)/character \
+	--calibration $(SUBJECT)/calibration --seq $(3) $(6) --out $(4)
 
 # renders of the tracked meshes of a sequence: $(1) sequence, $(2) output, $(3) extra options
 RENDERS_OF = $(call RELIGHT_OF,$(SUBJECT)/meshes/$(1),$(SUBJECT)/uvmaps/$(1),$(1),$(2),,$(3))
 $(eval $(call PER_FRAME_RULES,renders,$(SUBJECT)/meshes/%/manifest.json $(SUBJECT)/uvmaps/%/manifest.json \
-	$(RELIGHT_MODEL) $(CHARACTER) $(CAPTURE),RENDERS_OF))
+	$(RELIGHT_MODEL) $(CHARACTER) $(CAPTURE) $(CALIBRATION),RENDERS_OF))
 
 # The same avatar and protocol on better meshes (issue 18's rows that show what tracking costs):
 # renders_studio/<seq>: the meshes a lightstage tracks (its markerless mocap -> the student), no
 # egocentric error; renders_truth/<seq>: meshes from the TRUE keypoints (ground truth, evaluation
 # only), what remains is the avatar's own error (skeleton fit, the student's surface).
 $(SUBJECT)/renders_studio/%/manifest.json: $(SUBJECT)/meshes_student/%/manifest.json \
-		$(SUBJECT)/uvmaps_student/%/manifest.json $(RELIGHT_MODEL) $(CHARACTER) $(CAPTURE)
+		$(SUBJECT)/uvmaps_student/%/manifest.json $(RELIGHT_MODEL) $(CHARACTER) $(CAPTURE) $(CALIBRATION)
 	$(call RELIGHT_OF,$(SUBJECT)/meshes_student/$*,$(SUBJECT)/uvmaps_student/$*,$*,$(SUBJECT)/renders_studio/$*)
 
 $(SUBJECT)/meshes_truth/%/manifest.json: $(SUBJECT)/motion_truth/%/manifest.json $(ANIMATE_STUDENT) $(CHARACTER) \
@@ -363,7 +365,7 @@ $$(SUBJECT)/uvmaps_$(1)/%/manifest.json: $$(SUBJECT)/meshes_$(1)/%/manifest.json
 	$$(call GEOLIFT_OF,$$(SUBJECT)/meshes_$(1)/$$*,$$*,$$(SUBJECT)/uvmaps_$(1)/$$*)
 
 $$(SUBJECT)/renders_$(1)/%/manifest.json: $$(SUBJECT)/meshes_$(1)/%/manifest.json \
-		$$(SUBJECT)/uvmaps_$(1)/%/manifest.json $$(RELIGHT_MODEL) $$(CHARACTER) $$(CAPTURE)
+		$$(SUBJECT)/uvmaps_$(1)/%/manifest.json $$(RELIGHT_MODEL) $$(CHARACTER) $$(CAPTURE) $$(CALIBRATION)
 	$$(call RELIGHT_OF,$$(SUBJECT)/meshes_$(1)/$$*,$$(SUBJECT)/uvmaps_$(1)/$$*,$$*,$$(SUBJECT)/renders_$(1)/$$*)
 endef
 $(foreach row,truth fit,$(eval $(call RELIGHT_ROW_RULES,$(row))))
@@ -380,7 +382,7 @@ $(SUBJECT)/models/relight_%/manifest.json: $(RELIGHT_TRAIN_INPUTS)
 	$(call TRAIN_RELIGHT,$(ABLATION_SET_$*),$(SUBJECT)/models/relight_$*)
 
 $(SUBJECT)/renders_ablation/%/manifest.json: $(SUBJECT)/models/relight_%/manifest.json \
-		$(SUBJECT)/meshes/$(SEQ)/manifest.json $(SUBJECT)/uvmaps/$(SEQ)/manifest.json
+		$(SUBJECT)/meshes/$(SEQ)/manifest.json $(SUBJECT)/uvmaps/$(SEQ)/manifest.json $(CALIBRATION)
 	$(call RELIGHT_OF,$(SUBJECT)/meshes/$(SEQ),$(SUBJECT)/uvmaps/$(SEQ),$(SEQ),$(SUBJECT)/renders_ablation/$*,\
 		$(SUBJECT)/models/relight_$*)
 

@@ -80,6 +80,7 @@ def test_relight_renders_held_out_cameras_and_scores_them(tiny_capture, skinned_
     for key in ("psnr", "ssim", "lambert_psnr", "baked_psnr"):
         assert np.isfinite(manifest["metrics"][key]), key
     assert 0 < manifest["metrics"]["head_excluded_fraction"] < 0.5
+    assert manifest["metrics"]["headset_excluded"].startswith("no")  # no --calibration: its pixels are scored
     # each body part of the character's segmentation is scored apart (the shiny garment: pants)
     for row in ("", "diffuse_only_", "lambert_", "baked_"):
         assert np.isfinite(manifest["metrics"]["parts"]["pants"][f"{row}psnr"]), row
@@ -248,3 +249,28 @@ def test_relight_loss_terms_are_means_over_the_subject_whatever_the_framing():
     assert float(near["l2"]) == pytest.approx(squared) and float(far["l2"]) == pytest.approx(squared)
     weights = {"l1": 2.0, "ssim": 3.0, "reg": 0.0, "diffuse": 0.5, "l2": 7.0}
     assert float(loss(0, weights)["loss"]) == pytest.approx(sum(w * float(near[k]) for k, w in weights.items()))
+
+
+def test_relight_with_a_calibration_leaves_the_headset_out_of_the_scores(
+        tiny_capture, skinned_meshes, relight_inputs, relight_model, oracle_calibration, oracle_calibration_artifact,
+        tmp_path):
+    import dataclasses
+
+    from egorelight_cli.errors import EgorelightError
+    from egorelight_cli.io.capture import open_capture
+    from egorelight_cli.io.npz import read_npz
+    from egorelight_cli.stages.relight_eval import HeadsetExclusion
+
+    out = tmp_path / "renders"
+    assert _main("--preset", "tiny", "-q", "relight", "--capture", tiny_capture, "--meshes", skinned_meshes / "test.npz",
+                 "--uvmaps", relight_inputs / "uvmaps_test", "--model", relight_model, "--seq", "test",
+                 "--calibration", oracle_calibration_artifact, "--out", out) == 0
+    metrics = json.loads((out / "manifest.json").read_text())["metrics"]
+    assert metrics["headset_excluded"].startswith("yes") and metrics["headset_unposed_views"] == 0
+    rows, _ = read_npz(out / "scores.npz", check_finite=False)
+    # the tiny subject wears the headset in every test view: some of its pixels lie outside the rendered head
+    assert (rows["headset_excluded_fraction"] > 0).all() and metrics["headset_excluded_fraction"] < 0.2
+    capture, _ = open_capture(tiny_capture)
+    without = dataclasses.replace(oracle_calibration, head_poses={})
+    with pytest.raises(EgorelightError, match="no head poses for sequence 'test'"):
+        HeadsetExclusion.from_calibration(capture, without, "test")

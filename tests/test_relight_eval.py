@@ -81,3 +81,53 @@ def test_part_means_nest_under_parts():
     assert metrics["parts"] == {"pants": {"psnr": 18.0, "olat_tail_psnr": 8.0},
                                 "upper_clothes": {"lambert_psnr": 16.0, "olat_tail_lambert_psnr": 9.0}}
     assert not any(key.startswith("part.") or "_part." in key for key in metrics)
+
+
+def test_the_headset_leaves_the_scores_with_the_head():
+    rng = np.random.default_rng(1)
+    render = _render(rng)
+    target = torch.from_numpy(rng.uniform(0, 1, (40, 48, 3)))
+    mask = torch.ones(40, 48, dtype=torch.bool)
+    headset = torch.zeros(40, 48, dtype=torch.bool)
+    headset[4:10, 30:40] = True  # rows 4, 5 are the render's head already: 4 rows x 10 columns are new
+    scores = RelightScores()
+    scores.start_view()
+    score_view(scores, render, target, mask, headset=headset)
+    region = mask.clone()
+    region[:6] = False
+    region &= ~headset
+    row = scores.views[0]
+    assert row["psnr"] == pytest.approx(float(psnr(tonemap_for_metrics(render.colour), tonemap_for_metrics(target), region)))
+    assert row["headset_excluded_fraction"] == pytest.approx(40 / (40 * 48))
+    assert row["head_excluded_fraction"] == pytest.approx((6 * 48 + 40) / (40 * 48))
+    # a frame without a head pose: nothing more excluded, counted
+    scores.start_view()
+    score_view(scores, render, target, mask, unposed_headset=True)
+    assert np.isnan(scores.views[1]["headset_excluded_fraction"])
+    body = mask.clone()
+    body[:6] = False
+    assert scores.views[1]["psnr"] == pytest.approx(float(psnr(tonemap_for_metrics(render.colour),
+                                                               tonemap_for_metrics(target), body)))
+    assert scores.metrics()["headset_unposed_views"] == 1
+
+
+def test_headset_pixels_keep_what_the_render_draws_in_front_of_it():
+    from egorelight_cli.geometry.cameras import Camera
+    from egorelight_cli.structures.calibration import HeadPoses
+    from egorelight_cli.stages.relight_eval import HeadsetExclusion
+
+    camera = Camera(model="pinhole", K=np.array([[40.0, 0, 23.5], [0, 40.0, 19.5], [0, 0, 1]]), dist=np.zeros(5),
+                    width=48, height=40, T_cam_from_world=np.eye(4))
+    pose = np.eye(4)
+    pose[:3, 3] = [0.0, 0.0, 2.0]
+    poses = HeadPoses(pose[None], np.array([7]), np.array([True]), np.array([4]), np.array([0.5]))
+    exclusion = HeadsetExclusion(np.array([[-0.2, -0.2, -0.1], [0.2, 0.2, 0.1]]), poses)
+    render = _render(np.random.default_rng(2))
+    depth = torch.full((40, 48), 3.0)  # behind the headset (its front is at 1.9 m) ...
+    depth[:, :24] = 1.0  # ... except the left half, in front of it
+    render = GaussianRender(render.colour, render.alpha, depth * render.alpha, render.passes)
+    pixels = exclusion.pixels(7, camera, render)
+    rows, cols = np.nonzero(pixels.numpy())
+    assert pixels.any() and cols.min() == 24  # the box spans columns 15..32: its left part is drawn in front
+    assert exclusion.pixels(8, camera, render) is None  # no head pose for frame 8
+    assert "box" in exclusion.describe()

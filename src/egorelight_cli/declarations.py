@@ -229,7 +229,9 @@ STAGE_COMMANDS = (
                     Input("--camera-json", "camera_json", "Render into this virtual camera instead (name, model, K, "
                           "dist, T_cam_from_world, width, height; not scored).", files=(".json",), dir_okay=False),
                     Input("--envmap", "envmap", "Light every frame with this HDR map (.exr/.hdr, or an envmap "
-                          "artifact; not scored).", ("envmap",), (".exr", ".hdr"))),
+                          "artifact; not scored).", ("envmap",), (".exr", ".hdr")),
+                    calibration("Calibration artifact: its head poses place the worn headset, whose pixels the scores "
+                                "exclude with the head.", required=False)),
             options=(sequence("test", "Sequence to relight."),
                      Option("--cameras", "cameras", "Render into the held-out studio cameras, all of them, or the named "
                             "ones.", default="held-out", metavar="held-out|all|NAME[,NAME]"),

@@ -44,7 +44,8 @@ from egorelight_cli.stages import relight as rl
 from egorelight_cli.stages.geolift_commands import load_character_meshes, map_path, training_cameras
 from egorelight_cli.sharding import FrameRange, stack_rows, write_preview
 from egorelight_cli.stages.relight_eval import (HEAD_PARTS, PARTS_PASS, SCORED_PATTERNS, SCORES_NPZ, RelightScores,
-                                                display_images, part_channels, part_groups, score_view)
+                                                HEADSET_NOT_EXCLUDED, HeadsetExclusion, display_images, part_channels,
+                                                part_groups, score_view)
 
 PREVIEW_PNG = "preview.png"
 UVMAP_LAYERS = ("albedo", "shadow", "normal", "diffuse")
@@ -153,6 +154,8 @@ class RelightData:
         #: cameras by name: the capture's studio cameras, plus any virtual ones (``add_virtual_cameras``)
         self.cameras = dict(capture.studio_cameras)
         self.virtual: set[str] = set()
+        #: the worn headset's pixels, excluded from the scores with the head (``--calibration``)
+        self.headset: HeadsetExclusion | None = None
 
     def add_virtual_cameras(self, cameras: dict) -> None:
         """Views from cameras no capture holds: rendered, never scored."""
@@ -283,7 +286,9 @@ def evaluate(model: rl.RelightModel, data: RelightData, views: list[tuple[int, s
             if scored:
                 scores.start_view()
                 target, mask = data.target(f, camera_name)
-                tonemapped = score_view(scores, render, target, mask, data.parts if PARTS_PASS in extra else ())
+                headset = None if data.headset is None else data.headset.pixels(f, data.cameras[camera_name], render)
+                tonemapped = score_view(scores, render, target, mask, data.parts if PARTS_PASS in extra else (),
+                                        headset, unposed_headset=data.headset is not None and headset is None)
             else:
                 tonemapped = display_images(render)
             if writer is not None:
@@ -433,11 +438,19 @@ class RelightCommands:
 
     def predict(self, capture_path: Path, meshes_path: Path, uvmaps_path: Path, model_path: Path,
                 character_spec: str, seq: str, selection: CameraSelection, out: Path,
-                lighting: LightingOverride | None = None, frame_range: FrameRange = FrameRange()) -> Path:
+                lighting: LightingOverride | None = None, frame_range: FrameRange = FrameRange(),
+                calibration_path: Path | None = None) -> Path:
         model, net, model_artifact = load_relight_model(model_path)
         # the sequence's own lighting: its HDR-lit frames and its OLAT/group tail, scored apart
         data, frames, inputs, sources = self._load(capture_path, meshes_path, uvmaps_path, character_spec, seq, net,
                                                    lighting, SCORED_PATTERNS)
+        if calibration_path is not None:  # the headset's pixels leave the scores with the head
+            from egorelight_cli.io.calibration import open_calibration
+
+            calibration, calibration_artifact = open_calibration(calibration_path)
+            inputs.append(calibration_artifact)
+            if seq in calibration.head_poses:  # none: a sequence recorded without the headset
+                data.headset = HeadsetExclusion.from_calibration(data.capture, calibration, seq)
         cameras, virtual = selection.resolve(data.capture, data.sequence)
         data.add_virtual_cameras(virtual)
         start, stop = frame_range.bounds(len(frames))  # a shard renders the views of its frames
@@ -455,6 +468,10 @@ class RelightCommands:
             patterns = light_patterns(data.sequence, [f for f, _ in views]) if scored else None
             writer.metrics.update({"sequence": seq, "cameras": cameras, "views": len(views),
                                    **scored_metrics(scores, data, patterns)})
+            if scored:
+                writer.metrics["headset_excluded"] = (
+                    data.headset.describe() if data.headset is not None else HEADSET_NOT_EXCLUDED
+                    if calibration_path is None else f"no: the calibration has no head poses of {seq!r} (no headset)")
             rows = {"frame_ids": np.array([f for f, _ in views], np.int64), "camera": np.array([c for _, c in views]),
                     **({"light": patterns, **scores.arrays()} if scored else {})}
             writer.save_npz(SCORES_NPZ, rows, rows=sorted(rows), units={"psnr": "dB", "ssim": "x100"},
@@ -481,8 +498,8 @@ def train_command(run: StageRun, capture: Path, meshes: Path, uvmaps: Path, char
 
 
 def relight_command(run: StageRun, capture: Path, meshes: Path, uvmaps: Path, model: Path, character: str,
-                    camera_json: Path | None, envmap: Path | None, sequence: str, cameras: str, flat: bool,
-                    olat: int | None, yaw: float, out: Path, frame_range: FrameRange) -> Path:
+                    camera_json: Path | None, envmap: Path | None, calibration: Path | None, sequence: str, cameras: str,
+                    flat: bool, olat: int | None, yaw: float, out: Path, frame_range: FrameRange) -> Path:
     lighting = LightingOverride.parse(flat, olat, envmap, yaw)
     return RelightCommands(run).predict(capture, meshes, uvmaps, model, character, sequence,
-                                        CameraSelection(cameras, camera_json), out, lighting, frame_range)
+                                        CameraSelection(cameras, camera_json), out, lighting, frame_range, calibration)

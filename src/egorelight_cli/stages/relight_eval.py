@@ -3,10 +3,11 @@
 A view is scored on the metric tone mapping (:func:`~egorelight_cli.render.image_metrics.tonemap_for_metrics`)
 inside the subject mask, with the head region excluded (the avatar is trained without the HMD,
 the test frames show it): pixels where the render's ``head`` pass covers more than half of its
-alpha. PSNR (dB) and SSIM (x100) for the model, its diffuse part alone ("without SpecularNet"),
-and the baselines: the Lambert relighting of the flat-lit texture ``a chi / (pi rho s_flat)`` and
-the baked flat-lit texture, all rendered with the
-model's Gaussians. LPIPS and FID need pretrained networks that cannot be downloaded: ``null``.
+alpha and, with a calibration, the worn headset's pixels (:class:`HeadsetExclusion`; it sticks
+out in front of the face, where the headset-less avatar draws nothing). PSNR (dB) and SSIM (x100)
+for the model, its diffuse part alone ("without SpecularNet"), and the baselines: the Lambert
+relighting of the flat-lit texture ``a chi / (pi rho s_flat)`` and the baked flat-lit texture,
+all rendered with the model's Gaussians. LPIPS and FID need pretrained networks that cannot be downloaded: ``null``.
 
 Per body part of the character's segmentation (:func:`part_groups`: e.g. ``pants``, the simulated
 subject's shiny garment, ``upper_clothes``, its matte one) the same rows are scored again in the
@@ -17,11 +18,18 @@ materials, not in the whole-body mean.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import torch
 
+from egorelight_cli.errors import EgorelightError
+from egorelight_cli.geometry.cameras import Camera
+from egorelight_cli.geometry.headset import HEADSET_MARGIN_M, headset_box, headset_mask
+from egorelight_cli.io.capture import Capture
 from egorelight_cli.render.gaussians import GaussianRender
 from egorelight_cli.render.image_metrics import psnr, ssim, tonemap_for_metrics
+from egorelight_cli.structures.calibration import Calibration, HeadPoses
 
 #: metric prefix -> the tone-mapped image it scores (``render``: the model's colour, else a render pass)
 ROWS = {"": "render", "diffuse_only_": "diffuse", "lambert_": "lambert", "baked_": "baked"}
@@ -74,6 +82,8 @@ def relight_metrics(rows: dict[str, np.ndarray], patterns: np.ndarray | None = N
             if (patterns == pattern).any():
                 out.update(means(patterns == pattern, f"{pattern}_tail_"))
                 out[f"{pattern}_tail_views"] = int((patterns == pattern).sum())
+    if "headset_excluded_fraction" in rows:  # NaN: a view whose frame calibration gave no head pose
+        out["headset_unposed_views"] = int(np.isnan(rows["headset_excluded_fraction"]).sum())
     out.update({"lpips": None, "fid": None, "lpips_fid": "need pretrained AlexNet/Inception weights: not scored"})
     return _nest_parts(out)
 
@@ -103,7 +113,7 @@ def merged_metrics(root, manifests: list[dict]) -> dict:
 
     rows, _ = read_npz(Path(root) / SCORES_NPZ, check_finite=False)
     first = manifests[0]["metrics"]
-    metrics = {k: first[k] for k in ("sequence", "cameras", "lighting")}
+    metrics = {k: first[k] for k in ("sequence", "cameras", "lighting", "headset_excluded") if k in first}
     metrics["views"] = int(len(rows["frame_ids"]))
     if "scored" in first:
         return {**metrics, "scored": first["scored"]}
@@ -167,11 +177,18 @@ def _add_rows(scores: RelightScores, display: dict, region: torch.Tensor, prefix
 
 
 def score_view(scores: RelightScores, render: GaussianRender, target: torch.Tensor, mask: torch.Tensor,
-               parts: tuple[str, ...] = ()) -> dict:
-    """Score one render against its captured image, in the subject ``mask`` without the head,
+               parts: tuple[str, ...] = (), headset: torch.Tensor | None = None, unposed_headset: bool = False) -> dict:
+    """Score one render against its captured image, in the subject ``mask`` without the head (the
+    render's head and, when given, the ``headset`` (H,W) bool pixels of :class:`HeadsetExclusion`;
+    ``unposed_headset``: they should have been, but the frame has no head pose),
     and per part of ``parts`` (the channels of the render's :data:`PARTS_PASS`, when given; a
     part covering fewer than 16 scored pixels gets no row). Returns the tone-mapped uint8 images by name."""
     head = _covered(render, "head")[..., 0]
+    if headset is not None:
+        scores.add("headset_excluded_fraction", float((headset & ~head)[mask].float().mean()) if bool(mask.any()) else 0.0)
+        head = head | headset
+    elif unposed_headset:
+        scores.add("headset_excluded_fraction", float("nan"))
     region = mask & ~head
     display = {"target": tonemap_for_metrics(target), **tonemapped(render, ROWS.values())}
     if bool(region.any()):
@@ -183,3 +200,50 @@ def score_view(scores: RelightScores, render: GaussianRender, target: torch.Tens
                 _add_rows(scores, display, part_region, f"{PART_KEY}{part}.")
     scores.add("head_excluded_fraction", float(head[mask].float().mean()) if bool(mask.any()) else 0.0)
     return _uint8(display)
+
+
+#: the manifest's ``headset_excluded`` without a calibration
+HEADSET_NOT_EXCLUDED = ("no: without --calibration the worn headset's pixels outside the rendered head are scored "
+                        "(the avatar has no headset)")
+
+
+@dataclass(frozen=True)
+class HeadsetExclusion:
+    """The worn headset's pixels in a sequence's studio views (:mod:`egorelight_cli.geometry.headset`):
+    a box around the HMD markers (``rig/hmd.json``) and the ego cameras (the calibration's hand-eye),
+    posed by the calibration's head poses of the sequence. Part of the head region the scores
+    exclude: the avatar is trained and rendered without a headset."""
+
+    box: np.ndarray
+    poses: HeadPoses
+
+    @classmethod
+    def from_calibration(cls, capture: Capture, calibration: Calibration, sequence: str) -> "HeadsetExclusion":
+        from egorelight_cli.stages.calibrate_head import MarkerLayout
+
+        if sequence not in calibration.head_poses:
+            raise EgorelightError(f"calibration has no head poses for sequence {sequence!r} (the headset's place "
+                                  "in its views)", calibration.source)
+        if not calibration.head_poses_in_studio_world(sequence):
+            raise EgorelightError(f"the calibration's head poses of sequence {sequence!r} are not in the studio's "
+                                  "world: they cannot place the headset in its studio views", calibration.source)
+        corners = np.stack(list(MarkerLayout.from_hmd(capture).corners.values()))
+        centres = [np.linalg.inv(cam.T_cam_from_hmd)[:3, 3] for cam in calibration.ego_cameras.values()]
+        return cls(headset_box(corners, np.reshape(centres, (-1, 3))), calibration.head_poses[sequence])
+
+    def pixels(self, frame_id: int, camera: Camera, render: GaussianRender) -> torch.Tensor | None:
+        """(H,W) bool headset pixels of ``camera`` at ``frame_id`` that ``render`` does not cover
+        in front of the headset (alpha over half, depth nearer than the box); None where
+        calibration has no valid head pose for the frame (nothing is excluded then: counted as
+        ``headset_unposed_views``)."""
+        index = np.nonzero(self.poses.frame_ids == int(frame_id))[0]
+        if index.size == 0 or not self.poses.valid[index[0]]:
+            return None
+        inside, nearest_m = headset_mask(self.box, self.poses.T_world_from_hmd[index[0]], camera)
+        in_front = (render.alpha > 0.5) & (render.expected_depth < nearest_m)
+        return torch.from_numpy(inside) & ~in_front
+
+    def describe(self) -> str:
+        size_cm = 100 * (self.box[1] - self.box[0])
+        return (f"yes: a {size_cm[0]:.0f} x {size_cm[1]:.0f} x {size_cm[2]:.0f} cm box around the HMD markers and ego "
+                f"cameras (margin {100 * HEADSET_MARGIN_M:g} cm), posed by the calibration's head poses")
