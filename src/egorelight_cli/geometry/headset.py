@@ -24,7 +24,7 @@ import cv2
 import numpy as np
 
 from egorelight_cli.errors import EgorelightError
-from egorelight_cli.geometry.cameras import Camera, project_world, transform_points, world_to_camera
+from egorelight_cli.geometry.cameras import Camera, project, transform_points, world_to_camera
 
 #: the box's growth on every side (metres): the markers' white quiet zone, the visor's edges
 #: beyond the outermost markers and the head pose's error
@@ -59,8 +59,9 @@ def headset_mask(box: np.ndarray, T_world_from_hmd: np.ndarray, camera: Camera) 
     than three edge points are in front of the camera), and the box's nearest depth (metres along
     the camera's z; anything drawn nearer is in front of the headset)."""
     points_world = transform_points(np.asarray(T_world_from_hmd, np.float64), box_surface_points(box))
-    pixels, valid = project_world(camera, points_world, return_valid=True)
-    depth = np.asarray(world_to_camera(camera, points_world))[:, 2]
+    points_cam = np.asarray(world_to_camera(camera, points_world))
+    pixels, valid = project(points_cam, camera.K, camera.dist, camera.model, return_valid=True)
+    depth = points_cam[:, 2]
     mask = np.zeros((camera.height, camera.width), np.uint8)
     pixels = np.asarray(pixels)[np.asarray(valid)]
     if len(pixels) >= 3:

@@ -109,8 +109,7 @@ def usable_frames(calibration: Calibration, sequence: SequenceInfo, roles: Seque
         ego = calibration.ego_frame_id(sequence.name, int(f))
         if all(sequence.ego_image_path(r, ego).exists() for r in roles):
             frames.append(int(f))
-            index = np.nonzero(poses.frame_ids == f)[0]
-            posed.append(bool(index.size and poses.valid[index[0]]))
+            posed.append(poses.valid_pose(int(f)) is not None)
     if not frames:
         raise EgorelightError(f"sequence {sequence.name!r} has no content frame with ego images of "
                               f"{', '.join(roles)}", sequence.root)

@@ -236,10 +236,10 @@ class HeadsetExclusion:
         in front of the headset (alpha over half, depth nearer than the box); None where
         calibration has no valid head pose for the frame (nothing is excluded then: counted as
         ``headset_unposed_views``)."""
-        index = np.nonzero(self.poses.frame_ids == int(frame_id))[0]
-        if index.size == 0 or not self.poses.valid[index[0]]:
+        T_world_from_hmd = self.poses.valid_pose(frame_id)
+        if T_world_from_hmd is None:
             return None
-        inside, nearest_m = headset_mask(self.box, self.poses.T_world_from_hmd[index[0]], camera)
+        inside, nearest_m = headset_mask(self.box, T_world_from_hmd, camera)
         in_front = (render.alpha > 0.5) & (render.expected_depth < nearest_m)
         return torch.from_numpy(inside) & ~in_front
 

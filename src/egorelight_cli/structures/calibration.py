@@ -42,14 +42,23 @@ class HeadPoses:
             if np.shape(getattr(self, name)) != (T,):
                 raise EgorelightError(f"head pose field {name} has shape {np.shape(getattr(self, name))}, expected ({T},)")
 
+    def _index(self, frame_id: int) -> int | None:
+        index = np.nonzero(self.frame_ids == int(frame_id))[0]
+        return int(index[0]) if index.size else None
+
+    def valid_pose(self, frame_id: int) -> np.ndarray | None:
+        """T_world_from_hmd of one frame, or None for unknown or flagged frames."""
+        index = self._index(frame_id)
+        return None if index is None or not self.valid[index] else self.T_world_from_hmd[index]
+
     def pose(self, frame_id: int) -> np.ndarray:
         """T_world_from_hmd of one frame; an error for unknown or flagged frames."""
-        index = np.nonzero(self.frame_ids == frame_id)[0]
-        if index.size == 0:
+        index = self._index(frame_id)
+        if index is None:
             raise EgorelightError(f"frame {frame_id} has no head pose (frames {self.frame_ids.min()}..{self.frame_ids.max()})")
-        if not self.valid[index[0]]:
+        if not self.valid[index]:
             raise EgorelightError(f"frame {frame_id} was flagged by calibration (too little evidence for a head pose)")
-        return self.T_world_from_hmd[index[0]]
+        return self.T_world_from_hmd[index]
 
 
 @dataclass(frozen=True)
