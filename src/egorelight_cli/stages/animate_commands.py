@@ -234,7 +234,9 @@ class AnimateCommands:
     # ----------------------------------------------------------------------------- animate
     def animate(self, motion_path: Path, pointcloud_path: Path | None, model_path: Path, character_spec: str,
                 capture_path: Path | None, sequence: str, calibration_path: Path | None, no_depth: bool,
-                export: str | None, out: Path, fit_truth: bool = False) -> Path:
+                export: str | None, out: Path, fit: str | None = None) -> Path:
+        """``fit``: None, ``"recon"`` (``--fit-recon``) or ``"truth"`` (``--fit-truth``): each frame then
+        deformed onto the capture's reconstruction or true surface (:mod:`~egorelight_cli.stages.animate_fit`)."""
         character, character_artifact = load_character(character_spec)
         (motion_artifact,), cloud_artifact, lone = _motion_and_cloud_artifacts([motion_path], pointcloud_path, no_depth)
         model_artifact = open_artifact(model_path, kind="model")
@@ -247,8 +249,8 @@ class AnimateCommands:
         inputs = [a for a in (character_artifact, motion_artifact, cloud_artifact, model_artifact, capture_artifact,
                               calibration_artifact) if a is not None]
         sources = character_sources(character_spec, character_artifact) + lone
-        if fit_truth:
-            sources.append(_truth_file(capture, capture_path, sequence))
+        if fit is not None:
+            sources += _fit_sources(fit, capture, capture_path, sequence)
         if self.run.up_to_date(out, "meshes", inputs, sources):
             return Path(out)
         from egorelight_cli.stages.animate import previous_rows
@@ -264,10 +266,10 @@ class AnimateCommands:
             started = time.perf_counter()
             uv_inputs, xi_mask, template = model.uv_inputs(motion.theta, previous_rows(motion.frame_ids), clouds)
             meshes = model.mesh_sequence(uv_inputs, motion.theta, motion.frame_ids, motion.fps)
-            if fit_truth:
-                meshes = _fit_truth(writer, capture, sequence, model, meshes, calibration, cfg)
+            if fit is not None:
+                meshes = _fit_surface(writer, fit, capture, sequence, model, meshes, calibration, cfg)
             elapsed = time.perf_counter() - started
-            save_meshes(writer, meshes, name=None, source="animate --fit-truth" if fit_truth else "animate",
+            save_meshes(writer, meshes, name=None, source=f"animate --fit-{fit}" if fit else "animate",
                         no_depth=bool(no_depth))
             writer.timing["frames_per_s"] = round(motion.num_frames / max(elapsed, 1e-9), 2)
             writer.metrics.update({"frames": motion.num_frames, "no_depth": bool(no_depth),
@@ -289,33 +291,48 @@ class AnimateCommands:
 
 
 # ---------------------------------------------------------------------------------- scoring
-def _truth_file(capture: Capture | None, capture_path: Path | None, sequence: str) -> Path:
-    """The true surface ``--fit-truth`` fits to; a one-line error without it."""
+def _fit_sources(fit: str, capture: Capture | None, capture_path: Path | None, sequence: str) -> list[Path]:
+    """The files ``--fit-<fit>`` fits to (the truth's mesh file; none for the reconstructions, which
+    the capture's manifest covers); a one-line error when the capture has none."""
     if capture is None:
-        raise EgorelightError("--fit-truth needs --capture (a simulated capture with ground truth)")
+        raise EgorelightError(f"--fit-{fit} needs --capture (a capture with "
+                              + ("ground truth)" if fit == "truth" else "multi-view reconstructions)"))
+    if fit == "recon":
+        seq = capture.sequence(sequence)
+        if not any(seq.recon_path(int(f)).is_file() for f in seq.frame_ids):
+            raise EgorelightError(f"--fit-recon needs multi-view reconstructions of sequence {sequence!r} "
+                                  "(sequences/<seq>/recon/), which this capture does not have", capture_path)
+        return []
     path = capture.groundtruth_file(sequence, "meshes.npz")
     if path is None:
         raise EgorelightError(f"--fit-truth needs the ground-truth surface of sequence {sequence!r} "
                               "(groundtruth/<seq>/meshes.npz), which this capture does not have", capture_path)
-    return Path(path)
+    return [Path(path)]
 
 
-def _fit_truth(writer: ArtifactWriter, capture: Capture, sequence: str, model: AnimationModel, meshes: MeshSequence,
-               calibration, cfg: Config) -> MeshSequence:
-    """``meshes`` deformed towards the true surface (:mod:`egorelight_cli.stages.animate_fit`), in
-    the frame of ``calibration``'s head poses when given (as :func:`_score` takes it)."""
+def _fit_surface(writer: ArtifactWriter, fit: str, capture: Capture, sequence: str, model: AnimationModel,
+                 meshes: MeshSequence, calibration, cfg: Config) -> MeshSequence:
+    """``meshes`` deformed towards the reconstruction (``fit="recon"``, in the studio world like the
+    motion) or the true surface (``"truth"``, in the frame of ``calibration``'s head poses when given,
+    as :func:`_score` takes it); :mod:`egorelight_cli.stages.animate_fit`."""
     from egorelight_cli.stages.animate import TrainSettings
-    from egorelight_cli.stages.animate_eval import groundtruth_meshes
-    from egorelight_cli.stages.animate_fit import FitSettings, fit_to_truth, true_targets
-    from egorelight_cli.synth.groundtruth import T_pose_frame_from_truth_world
+    from egorelight_cli.stages.animate_fit import FitSettings, fit_to_surface, recon_targets, true_targets
 
     settings = FitSettings.from_config(cfg)
-    T = (np.eye(4) if calibration is None
-         else T_pose_frame_from_truth_world(capture.groundtruth_root(), calibration, sequence))
-    targets = true_targets(groundtruth_meshes(capture, sequence), meshes.frame_ids, settings.target_points, T)
-    fitted, summary = fit_to_truth(model, meshes, targets, TrainSettings.from_config(cfg), settings)
-    writer.metrics.update({**summary, "fitted_to_groundtruth": True})
-    writer.units.update({"fit_chamfer_cm": "cm, normal-filtered Chamfer to the true outer surface (--fit-truth)"})
+    if fit == "recon":
+        targets = recon_targets(capture.sequence(sequence), meshes.frame_ids, settings.target_points)
+        surface = "the multi-view reconstruction (--fit-recon)"
+    else:
+        from egorelight_cli.stages.animate_eval import groundtruth_meshes
+        from egorelight_cli.synth.groundtruth import T_pose_frame_from_truth_world
+
+        T = (np.eye(4) if calibration is None
+             else T_pose_frame_from_truth_world(capture.groundtruth_root(), calibration, sequence))
+        targets = true_targets(groundtruth_meshes(capture, sequence), meshes.frame_ids, settings.target_points, T)
+        surface = "the true outer surface (--fit-truth)"
+    fitted, summary = fit_to_surface(model, meshes, targets, TrainSettings.from_config(cfg), settings)
+    writer.metrics.update({**summary, "fitted_to_groundtruth": fit == "truth", "fitted_to": fit})
+    writer.units.update({"fit_chamfer_cm": f"cm, normal-filtered Chamfer to {surface}"})
     return fitted
 
 
@@ -480,7 +497,10 @@ def train_command(run: StageRun, capture: Path, motion: tuple[Path, ...], pointc
 
 
 def animate_command(run: StageRun, motion: Path, pointcloud: Path | None, model: Path, character: str,
-                    capture: Path | None, calibration: Path | None, sequence: str, no_depth: bool, fit_truth: bool,
-                    out: Path) -> Path:
+                    capture: Path | None, calibration: Path | None, sequence: str, no_depth: bool, fit_recon: bool,
+                    fit_truth: bool, out: Path) -> Path:
+    if fit_recon and fit_truth:
+        raise EgorelightError("--fit-recon and --fit-truth exclude each other: pick the surface to fit to")
+    fit = "recon" if fit_recon else "truth" if fit_truth else None
     return AnimateCommands(run).animate(motion, pointcloud, model, character, capture, sequence, calibration, no_depth,
-                                        None, out, fit_truth)
+                                        None, out, fit)

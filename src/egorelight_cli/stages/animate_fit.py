@@ -1,19 +1,22 @@
-"""Evaluation only: the character's mesh fitted to a simulated capture's true surface, per frame.
+"""The character's mesh fitted to a surface, per frame: a multi-view reconstruction or the truth.
 
-``animate --fit-truth`` (issue 18's "with ground-truth meshes" relight row). The appearance stages
-need meshes in the character's topology; a simulated subject's true surface has its own (garment
-sheets over a body of another tessellation), so the truth cannot be handed to them as it is. This
-module deforms the animate prediction of each frame towards the truth with the same
-parameterisation the network drives (embedded-graph rotations ``alpha`` and translations ``beta``,
-per-vertex canonical offsets ``o``, posed by the frame's motion) and the same loss it is trained
-with (:func:`~egorelight_cli.stages.animate.deformation_loss`: normal-filtered Chamfer plus the ARAP,
-smoothness and isometry terms), the true outer surface
-(:func:`~egorelight_cli.stages.animate_eval.outer_faces`) in the reconstruction's place. What is
-left between the fitted meshes and the truth is what the character's topology and the
-regularisers cannot follow; relit renders from them isolate the appearance model from tracking
-error.
+The appearance stages need meshes in the character's topology. This module deforms the animate
+prediction of each frame towards a target surface with the same parameterisation the network
+drives (embedded-graph rotations ``alpha`` and translations ``beta``, per-vertex canonical offsets
+``o``, posed by the frame's motion) and the same loss it is trained with
+(:func:`~egorelight_cli.stages.animate.deformation_loss`: normal-filtered Chamfer plus the ARAP,
+smoothness and isometry terms). Two targets:
 
-Nothing on a stage's input path reads this: it needs ``capture/groundtruth/<seq>/meshes.npz``.
+* ``animate --fit-recon``: the capture's multi-view reconstruction (``recon/``), what a lightstage
+  records beside its images. Tracked meshes refined onto it are the sharper training geometry
+  for ``geolift`` and ``relight`` (the student alone sits ~0.7 cm off on ``relight_train``).
+* ``animate --fit-truth`` (evaluation only; issue 18's "with ground-truth meshes" relight row): a
+  simulated capture's true outer surface (:func:`~egorelight_cli.stages.animate_eval.outer_faces`).
+  The truth has its own topology (garment sheets over a body of another tessellation), so it
+  cannot be handed to the appearance stages as it is; what is left between the fitted meshes and
+  the truth is what the character's topology and the regularisers cannot follow, and relit renders
+  from them isolate the appearance model from tracking error. Nothing on a stage's input path
+  reads ``capture/groundtruth/<seq>/meshes.npz``.
 """
 
 from __future__ import annotations
@@ -36,17 +39,30 @@ _fit = partial(setting, "animate")
 
 @dataclass(frozen=True)
 class FitSettings:
-    """``fit_truth.*``: Adam on the deformation parameters (in network output units) of a chunk of
+    """``fit.*``: Adam on the deformation parameters (in network output units) of a chunk of
     frames at a time."""
 
-    steps: int = _fit("fit_truth.steps")
-    lr: float = _fit("fit_truth.lr")
-    chunk: int = _fit("fit_truth.chunk")
-    target_points: int = _fit("fit_truth.target_points")
+    steps: int = _fit("fit.steps")
+    lr: float = _fit("fit.lr")
+    chunk: int = _fit("fit.chunk")
+    target_points: int = _fit("fit.target_points")
 
     @classmethod
     def from_config(cls, cfg: Config) -> "FitSettings":
         return settings_from_config(cls, cfg)
+
+
+def recon_targets(sequence, frame_ids: np.ndarray, count: int, seed: int = 0) -> dict[int, tuple[torch.Tensor, torch.Tensor]]:
+    """Frame id -> ``(points (M,3), unit normals (M,3))`` float32: up to ``count`` vertices of the
+    multi-view reconstruction of each frame of ``frame_ids`` that has one (``sequence``: a capture's
+    :class:`~egorelight_cli.io.capture.SequenceInfo`; the reconstructions lie in the studio world,
+    the frame of the motions the stages estimate)."""
+    from egorelight_cli.io.capture import read_reconstructions
+    from egorelight_cli.stages.animate import reconstruction_target
+
+    rng = np.random.default_rng(seed)
+    return {fid: reconstruction_target(v, f, count, rng)
+            for fid, (v, f) in sorted(read_reconstructions(sequence, frame_ids).items())}
 
 
 def true_targets(truth: SurfaceSequence, frame_ids: np.ndarray, count: int, T_pose_frame_from_truth: np.ndarray,
@@ -71,7 +87,7 @@ def true_targets(truth: SurfaceSequence, frame_ids: np.ndarray, count: int, T_po
     return out
 
 
-def fit_to_truth(model, meshes: MeshSequence, targets: dict[int, tuple[torch.Tensor, torch.Tensor]],
+def fit_to_surface(model, meshes: MeshSequence, targets: dict[int, tuple[torch.Tensor, torch.Tensor]],
                  train_settings, settings: FitSettings) -> tuple[MeshSequence, dict[str, float]]:
     """Each frame of ``meshes`` with a target deformed towards it (see the module docstring).
 
@@ -79,7 +95,8 @@ def fit_to_truth(model, meshes: MeshSequence, targets: dict[int, tuple[torch.Ten
         model: the :class:`~egorelight_cli.stages.animate.AnimationModel` (its character and output
             scales; the network is not run).
         meshes: the prediction to start from (its theta, alpha, beta, offsets).
-        targets: :func:`true_targets`.
+        targets: frame id -> (points (M,3), unit normals (M,3)) in the frame of ``meshes``
+            (:func:`recon_targets`, :func:`true_targets`).
         train_settings: the animate ``TrainSettings`` (loss weights, Chamfer filters).
     Returns:
         ``(fitted meshes, {"fit_frames", "fit_chamfer_cm_before", "fit_chamfer_cm_after"})``; frames
@@ -121,7 +138,7 @@ def fit_to_truth(model, meshes: MeshSequence, targets: dict[int, tuple[torch.Ten
             vertices[chunk] = model.pose(theta, *deformation)[0].cpu().numpy()
             for value, part in zip(fitted, deformation):
                 value[chunk] = part.cpu().numpy()
-        console.info(f"animate --fit-truth: {start + len(chunk)} of {len(rows)} frames")
+        console.info(f"animate: fitted {start + len(chunk)} of {len(rows)} frames")
     result = MeshSequence(vertices, meshes.faces, meshes.theta, *fitted, meshes.frame_ids, meshes.fps,
                           meshes.ego_frame_ids)
 
