@@ -106,3 +106,15 @@ def test_animate_trains_on_the_estimated_motion_and_the_mocap(tmp_path):
     alone = _dry_run(tmp_path, "ANIMATE_TRAIN_MOTIONS=motion", f"{tmp_path}/models/animate/manifest.json")
     train = next(line for line in _commands(alone) if " train animate " in line)
     assert f"--motion {tmp_path}/motion/ego_train " in train and "motion_mocap" not in train
+
+
+def test_geolift_trains_on_the_student_meshes_refined_onto_the_reconstruction(tmp_path):
+    out = _dry_run(tmp_path, f"{tmp_path}/models/geolift/manifest.json")
+    for seq in ("relight_train", "ego_train"):
+        line = next(line for line in out.splitlines() if f"--out {tmp_path}/meshes_recon/{seq}" in line)
+        assert f"--motion {tmp_path}/motion_mocap/{seq}" in line and line.rstrip().endswith("--fit-recon")
+        assert f"--meshes {tmp_path}/meshes_recon/{seq} --seq {seq}" in out
+    # relight keeps training on the student's own meshes
+    relight = _dry_run(tmp_path, f"{tmp_path}/models/relight/manifest.json")
+    assert f"--meshes {tmp_path}/meshes_student/relight_train --uvmaps {tmp_path}/uvmaps_student/relight_train" \
+        in relight
