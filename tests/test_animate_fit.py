@@ -36,7 +36,7 @@ def _settings(steps: int):
     from egorelight_cli.stages.animate import TrainSettings
     from egorelight_cli.stages.animate_fit import FitSettings
 
-    return TrainSettings(), FitSettings(steps=steps, lr=0.05, chunk=8, target_points=6000)
+    return TrainSettings(), FitSettings(steps=steps, recon_steps=steps, lr=0.05, chunk=8, target_points=6000)
 
 
 def test_a_surface_moved_1_cm_is_followed_to_a_millimetre(character, skinning):
@@ -89,7 +89,7 @@ def tiny_skinning_model(tiny_capture, tmp_path_factory):
 
 def _fit_on_tiny(tiny_capture, model, out, *options) -> dict:
     gt = Path(tiny_capture) / "groundtruth"
-    assert _run("--preset", "tiny", "-q", "--set", "fit.steps=40", "animate", "--no-depth", "--motion",
+    assert _run("--preset", "tiny", "-q", "--set", "fit.steps=40", "--set", "fit.recon_steps=40", "animate", "--no-depth", "--motion",
                 gt / "test" / "motion.npz", "--model", model, "--capture", tiny_capture, *options,
                 "--out", out) == 0
     return json.loads((out / "manifest.json").read_text())

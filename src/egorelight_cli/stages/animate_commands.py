@@ -26,6 +26,7 @@ un-prefixed ``p2s_*`` keys repeat the stage's own mesh).
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -321,6 +322,7 @@ def _fit_surface(writer: ArtifactWriter, fit: str, capture: Capture, sequence: s
     settings = FitSettings.from_config(cfg)
     if fit == "recon":
         targets = recon_targets(capture.sequence(sequence), meshes.frame_ids, settings.target_points)
+        settings = dataclasses.replace(settings, steps=settings.recon_steps)
         surface = "the multi-view reconstruction (--fit-recon)"
     else:
         from egorelight_cli.stages.animate_eval import groundtruth_meshes

@@ -43,6 +43,7 @@ class FitSettings:
     frames at a time."""
 
     steps: int = _fit("fit.steps")
+    recon_steps: int = _fit("fit.recon_steps")  # ``steps`` of ``--fit-recon`` (``steps``: ``--fit-truth``)
     lr: float = _fit("fit.lr")
     chunk: int = _fit("fit.chunk")
     target_points: int = _fit("fit.target_points")
