@@ -8,8 +8,9 @@ drives (embedded-graph rotations ``alpha`` and translations ``beta``, per-vertex
 smoothness and isometry terms). Two targets:
 
 * ``animate --fit-recon``: the capture's multi-view reconstruction (``recon/``), what a lightstage
-  records beside its images. Tracked meshes refined onto it are the sharper training geometry
-  for ``geolift`` and ``relight`` (the student alone sits ~0.7 cm off on ``relight_train``).
+  records beside its images. Tracked meshes refined onto it are GeoLift's training geometry (the
+  student alone sits ~0.7 cm off on ``relight_train``; relight keeps the student's own, see the
+  Makefile's ``meshes_recon``).
 * ``animate --fit-truth`` (evaluation only; issue 18's "with ground-truth meshes" relight row): a
   simulated capture's true outer surface (:func:`~egorelight_cli.stages.animate_eval.outer_faces`).
   The truth has its own topology (garment sheets over a body of another tessellation), so it
@@ -53,7 +54,8 @@ class FitSettings:
         return settings_from_config(cls, cfg)
 
 
-def recon_targets(sequence, frame_ids: np.ndarray, count: int, seed: int = 0) -> dict[int, tuple[torch.Tensor, torch.Tensor]]:
+def recon_targets(sequence, frame_ids: np.ndarray, count: int,
+                  seed: int = 0) -> dict[int, tuple[torch.Tensor, torch.Tensor]]:
     """Frame id -> ``(points (M,3), unit normals (M,3))`` float32: up to ``count`` vertices of the
     multi-view reconstruction of each frame of ``frame_ids`` that has one (``sequence``: a capture's
     :class:`~egorelight_cli.io.capture.SequenceInfo`; the reconstructions lie in the studio world,
