@@ -296,7 +296,8 @@ $(SUBJECT)/meshes_student/%/manifest.json: $(SUBJECT)/motion_mocap/%/manifest.js
 
 # meshes_recon/<seq>: the student's meshes refined onto the capture's multi-view reconstruction
 # (animate --fit-recon), GeoLift's training geometry: on the da225ff cpu capture 0.13 / 0.19 cm off the
-# true surface on relight_train / ego_train, where the student alone is 0.69 / 1.00. DiffuseNet and
+# true surface on relight_train / ego_train at 150 fit steps (relight_train at the default
+# fit.recon_steps = 50: 0.14), where the student alone is 0.69 / 1.00. DiffuseNet and
 # SpecularNet keep training on the student's own meshes, whose error is closer to that of the meshes
 # they relight (trained on the refined ones, the egocentric row lost 0.14 dB).
 $(SUBJECT)/meshes_recon/%/manifest.json: $(SUBJECT)/motion_mocap/%/manifest.json $(ANIMATE_STUDENT) $(CHARACTER) \

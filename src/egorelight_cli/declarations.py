@@ -184,8 +184,7 @@ STAGE_COMMANDS = (
             options=(sequence("test", "Sequence name (ground truth, ego images)."),
                      Option("--no-depth", "no_depth", "Motion-only ablation (xi = 0).", type=bool, default=False),
                      Option("--fit-recon", "fit_recon", "Deform each frame towards the capture's multi-view "
-                            "reconstruction where it has one (training meshes for geolift and relight; "
-                            "stages/animate_fit.py).", type=bool, default=False),
+                            "reconstruction where it has one (GeoLift's training meshes; stages/animate_fit.py).", type=bool, default=False),
                      Option("--fit-truth", "fit_truth", "Evaluation only: deform each frame towards the capture's "
                             "ground-truth surface (the relight row with true geometry; stages/animate_fit.py).",
                             type=bool, default=False),

@@ -33,6 +33,7 @@ from egorelight_cli import console
 from egorelight_cli.config import Config, setting, settings_from_config
 from egorelight_cli.geometry.cameras import transform_points
 from egorelight_cli.geometry.normals import vertex_normals
+from egorelight_cli.io.capture import SequenceInfo, read_reconstructions
 from egorelight_cli.structures.mesh_sequence import MeshSequence, SurfaceSequence
 
 _fit = partial(setting, "animate")
@@ -54,13 +55,11 @@ class FitSettings:
         return settings_from_config(cls, cfg)
 
 
-def recon_targets(sequence, frame_ids: np.ndarray, count: int,
+def recon_targets(sequence: SequenceInfo, frame_ids: np.ndarray, count: int,
                   seed: int = 0) -> dict[int, tuple[torch.Tensor, torch.Tensor]]:
     """Frame id -> ``(points (M,3), unit normals (M,3))`` float32: up to ``count`` vertices of the
-    multi-view reconstruction of each frame of ``frame_ids`` that has one (``sequence``: a capture's
-    :class:`~egorelight_cli.io.capture.SequenceInfo`; the reconstructions lie in the studio world,
-    the frame of the motions the stages estimate)."""
-    from egorelight_cli.io.capture import read_reconstructions
+    multi-view reconstruction of each frame of ``frame_ids`` that has one in ``sequence`` (the
+    reconstructions lie in the studio world, the frame of the motions the stages estimate)."""
     from egorelight_cli.stages.animate import reconstruction_target
 
     rng = np.random.default_rng(seed)
