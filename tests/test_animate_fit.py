@@ -3,6 +3,7 @@ the capture's reconstruction or a true surface."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -140,3 +141,17 @@ def test_fit_recon_on_tiny_moves_the_meshes_towards_the_truth(tiny_capture, tiny
     error = _one_line_error(capsys, tiny_capture, tiny_skinning_model, tmp_path / "nothing", "--capture",
                             tiny_capture, "--fit-recon", "--fit-truth")
     assert "exclude each other" in error
+    # a motion none of whose frames the sequence reconstructs (another sequence's): an error, not a
+    # manifest that says fitted with nothing fitted
+    from egorelight_cli.io.motion import read_motion_npz, write_motion_npz
+
+    motion = read_motion_npz(Path(tiny_capture) / "groundtruth" / "test" / "motion.npz")
+    shifted = tmp_path / "elsewhere.npz"
+    write_motion_npz(shifted, dataclasses.replace(motion, frame_ids=motion.frame_ids + 100000))
+    capsys.readouterr()
+    out = tmp_path / "unfitted"
+    assert _run("--preset", "tiny", "animate", "--no-depth", "--motion", shifted, "--model", tiny_skinning_model,
+                "--capture", tiny_capture, "--seq", "test", "--fit-recon", "--out", out) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no frame of the motion" in err[0] and "'test'" in err[0], err
+    assert not out.exists()

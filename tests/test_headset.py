@@ -52,5 +52,9 @@ def test_the_mask_is_the_projected_box_and_its_nearest_depth():
     assert mask.sum() == (np.ptp(np.round(u)) + 1) * (np.ptp(np.round(v)) + 1)
     # behind the camera: nothing
     T_world_from_hmd[:3, 3] = [0.0, 0.0, -2.0]
-    behind, _ = headset_mask(box, T_world_from_hmd, camera)
-    assert not behind.any()
+    behind, nearest = headset_mask(box, T_world_from_hmd, camera)
+    assert not behind.any() and nearest == np.inf
+    # across the camera's plane (the front face 2 cm behind it): the depth of what projects, never negative
+    T_world_from_hmd[:3, 3] = [0.0, 0.0, 0.03]
+    _, nearest = headset_mask(box, T_world_from_hmd, camera)
+    assert 0.0 < nearest <= 0.08

@@ -145,3 +145,13 @@ def test_make_transform_broadcasts():
     T = rot.make_transform(torch.eye(3), torch.zeros(4, 3))
     assert T.shape == (4, 4, 4)
     torch.testing.assert_close(T, torch.eye(4).expand(4, 4, 4))
+
+
+def test_camera_centre_is_the_point_the_transform_maps_to_the_origin():
+    R = Rotation.from_rotvec(np.random.default_rng(3).normal(size=(4, 3))).as_matrix()
+    centres = np.random.default_rng(4).normal(size=(4, 3))
+    T_cam_from_x = np.tile(np.eye(4), (4, 1, 1))
+    T_cam_from_x[:, :3, :3] = R
+    T_cam_from_x[:, :3, 3] = -np.einsum("nij,nj->ni", R, centres)  # t = -R c
+    np.testing.assert_allclose(rot.camera_centre(T_cam_from_x), centres, atol=1e-12)
+    np.testing.assert_allclose(rot.camera_centre(T_cam_from_x[0]), centres[0], atol=1e-12)

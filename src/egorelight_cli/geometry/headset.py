@@ -45,7 +45,7 @@ def headset_box(marker_corners_hmd: np.ndarray, camera_centres_hmd: np.ndarray,
 
 
 def box_surface_points(box: np.ndarray, samples: int = EDGE_SAMPLES) -> np.ndarray:
-    """(12 samples, 3) points along the 12 edges of the axis-aligned box ``box`` (2,3)."""
+    """(12 * samples, 3) points along the 12 edges of the axis-aligned box ``box`` (2,3)."""
     corners = np.array([[box[i, 0], box[j, 1], box[k, 2]] for i, j, k in itertools.product((0, 1), repeat=3)])
     edges = [(a, b) for a, b in itertools.combinations(range(8), 2)
              if np.count_nonzero(corners[a] != corners[b]) == 1]
@@ -56,15 +56,18 @@ def box_surface_points(box: np.ndarray, samples: int = EDGE_SAMPLES) -> np.ndarr
 def headset_mask(box: np.ndarray, T_world_from_hmd: np.ndarray, camera: Camera) -> tuple[np.ndarray, float]:
     """The pixels of ``camera`` inside the projection of the headset box ``box`` (2,3) posed by
     ``T_world_from_hmd`` (4,4): (H,W) bool (the convex hull of its projected edges; empty when fewer
-    than three edge points are in front of the camera), and the box's nearest depth (metres along
-    the camera's z; anything drawn nearer is in front of the headset)."""
+    than three edge points project: in front of the camera and inside the lens model's valid range),
+    and the nearest depth of those points (metres along the camera's z, inf when none project;
+    anything drawn nearer is in front of the headset). The depth is z, as a pinhole render's
+    depth is: the studio cameras this scores are pinhole."""
     points_world = transform_points(np.asarray(T_world_from_hmd, np.float64), box_surface_points(box))
     points_cam = np.asarray(world_to_camera(camera, points_world))
     pixels, valid = project(points_cam, camera.K, camera.dist, camera.model, return_valid=True)
-    depth = points_cam[:, 2]
+    valid = np.asarray(valid)
+    depth = points_cam[valid, 2]
     mask = np.zeros((camera.height, camera.width), np.uint8)
-    pixels = np.asarray(pixels)[np.asarray(valid)]
+    pixels = np.asarray(pixels)[valid]
     if len(pixels) >= 3:
         hull = cv2.convexHull(np.round(pixels).astype(np.int32))
         cv2.fillConvexPoly(mask, hull, 1)
-    return mask.astype(bool), float(depth.min())
+    return mask.astype(bool), float(depth.min()) if len(depth) else float("inf")

@@ -272,6 +272,12 @@ def invert_rigid(T):
     return out
 
 
+def camera_centre(T_cam_from_x: np.ndarray) -> np.ndarray:
+    """(...,3) the camera's centre in frame ``x`` from ``T_cam_from_x`` (...,4,4) rigid (units of its
+    translation): the translation of :func:`invert_rigid`."""
+    return np.asarray(invert_rigid(np.asarray(T_cam_from_x, np.float64)))[..., :3, 3]
+
+
 def transform_points(T: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
     """Apply affine 4x4 (or 3x4) transforms to points: ``T[:3,:3] @ p + T[:3,3]``.
 

@@ -332,6 +332,10 @@ def _fit_surface(writer: ArtifactWriter, fit: str, capture: Capture, sequence: s
              else T_pose_frame_from_truth_world(capture.groundtruth_root(), calibration, sequence))
         targets = true_targets(groundtruth_meshes(capture, sequence), meshes.frame_ids, settings.target_points, T)
         surface = "the true outer surface (--fit-truth)"
+    if not targets:
+        raise EgorelightError(f"--fit-{fit}: no frame of the motion ({len(meshes.frame_ids)} frames, ids "
+                              f"{int(meshes.frame_ids[0])}-{int(meshes.frame_ids[-1])}) has {surface.split(' (')[0]} "
+                              f"in sequence {sequence!r}; is --seq the motion's sequence?")
     fitted, summary = fit_to_surface(model, meshes, targets, TrainSettings.from_config(cfg), settings)
     writer.metrics.update({**summary, "fitted_to_groundtruth": fit == "truth", "fitted_to": fit})
     writer.units.update({"fit_chamfer_cm": f"cm, normal-filtered Chamfer to {surface}"})

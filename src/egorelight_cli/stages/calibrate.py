@@ -36,6 +36,7 @@ from egorelight_cli.artifacts import ArtifactWriter
 from egorelight_cli.config import Config
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.geometry.cameras import invert_rigid
+from egorelight_cli.geometry.rotations import camera_centre
 from egorelight_cli.geometry.rigid import mean_rotation, rotation_angle_deg
 from egorelight_cli.io.calibration import write_calibration
 from egorelight_cli.structures.calibration import STUDIO_HEAD_POSE_SOURCE, Calibration, EgoCameraCalibration, HeadPoses
@@ -140,10 +141,6 @@ def calibrate(capture: Capture, cfg: Config) -> CalibrationRun:
 
 
 # ---------------------------------------------------------------------------------- evaluation
-def _camera_centre(T_cam_from_hmd: np.ndarray) -> np.ndarray:
-    return invert_rigid(T_cam_from_hmd)[:3, 3]
-
-
 def evaluate(capture: Capture, run: CalibrationRun) -> dict:
     """Metrics against ``groundtruth/`` (empty without one). Hand-eye translation error is the
     camera centre's distance in the HMD frame (mm); head-pose errors compare valid frames."""
@@ -159,7 +156,7 @@ def evaluate(capture: Capture, run: CalibrationRun) -> dict:
     for role, cam in cal.ego_cameras.items():
         G = np.asarray(truth[role]["T_cam_from_hmd"])
         rot[role] = float(rotation_angle_deg(cam.T_cam_from_hmd[:3, :3], G[:3, :3]))
-        trans[role] = float(1000 * np.linalg.norm(_camera_centre(cam.T_cam_from_hmd) - _camera_centre(G)))
+        trans[role] = float(1000 * np.linalg.norm(camera_centre(cam.T_cam_from_hmd) - camera_centre(G)))
     metrics["handeye_rotation_error_deg"] = rot
     metrics["handeye_translation_error_mm"] = trans
     if rot:

@@ -476,8 +476,10 @@ class RelightCommands:
                     **({"light": patterns, **scores.arrays()} if scored else {})}
             writer.save_npz(SCORES_NPZ, rows, rows=sorted(rows), units={"psnr": "dB", "ssim": "x100"},
                             description="per view (frame, camera, light pattern): PSNR/SSIM of the render and its "
-                                        "baselines (NaN: an empty scoring region); the metrics are their means over "
-                                        "the HDR-lit views, olat_tail_*/group_tail_* over the tail's")
+                                        "baselines (NaN: an empty scoring region), head_excluded_fraction (the head and "
+                                        "the headset), headset_excluded_fraction (NaN: no head pose for the view); "
+                                        "the metrics are their means over the HDR-lit views, "
+                                        "olat_tail_*/group_tail_* over the tail's")
             write_preview(writer, {first_view + i: image for i, image in previews.items()}, frame_range, PREVIEW_PNG)
             if not frame_range.whole:
                 writer.extra["shard"] = frame_range.manifest(len(frames))

@@ -26,6 +26,7 @@ import torch
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.geometry.cameras import Camera
 from egorelight_cli.geometry.headset import HEADSET_MARGIN_M, headset_box, headset_mask
+from egorelight_cli.geometry.rotations import camera_centre
 from egorelight_cli.io.capture import Capture
 from egorelight_cli.render.gaussians import GaussianRender
 from egorelight_cli.render.image_metrics import psnr, ssim, tonemap_for_metrics
@@ -185,7 +186,7 @@ def score_view(scores: RelightScores, render: GaussianRender, target: torch.Tens
     part covering fewer than 16 scored pixels gets no row). Returns the tone-mapped uint8 images by name."""
     head = _covered(render, "head")[..., 0]
     if headset is not None:
-        scores.add("headset_excluded_fraction", float((headset & ~head)[mask].float().mean()) if bool(mask.any()) else 0.0)
+        scores.add("headset_excluded_fraction", _fraction(headset & ~head, mask))
         head = head | headset
     elif unposed_headset:
         scores.add("headset_excluded_fraction", float("nan"))
@@ -198,8 +199,13 @@ def score_view(scores: RelightScores, render: GaussianRender, target: torch.Tens
             part_region = region & covered[..., k]
             if int(part_region.sum()) >= 16:
                 _add_rows(scores, display, part_region, f"{PART_KEY}{part}.")
-    scores.add("head_excluded_fraction", float(head[mask].float().mean()) if bool(mask.any()) else 0.0)
+    scores.add("head_excluded_fraction", _fraction(head, mask))
     return _uint8(display)
+
+
+def _fraction(pixels: torch.Tensor, mask: torch.Tensor) -> float:
+    """The fraction of ``mask``'s pixels (H,W bool) that ``pixels`` (H,W bool) covers; 0 for an empty mask."""
+    return float(pixels[mask].float().mean()) if bool(mask.any()) else 0.0
 
 
 #: the manifest's ``headset_excluded`` without a calibration
@@ -212,7 +218,10 @@ class HeadsetExclusion:
     """The worn headset's pixels in a sequence's studio views (:mod:`egorelight_cli.geometry.headset`):
     a box around the HMD markers (``rig/hmd.json``) and the ego cameras (the calibration's hand-eye),
     posed by the calibration's head poses of the sequence. Part of the head region the scores
-    exclude: the avatar is trained and rendered without a headset."""
+    exclude: the avatar is trained and rendered without a headset.
+
+    ``box`` (2,3): the box's min and max corners, metres, in the HMD frame; ``poses``: the
+    sequence's head poses (``T_world_from_hmd`` per frame)."""
 
     box: np.ndarray
     poses: HeadPoses
@@ -228,7 +237,7 @@ class HeadsetExclusion:
             raise EgorelightError(f"the calibration's head poses of sequence {sequence!r} are not in the studio's "
                                   "world: they cannot place the headset in its studio views", calibration.source)
         corners = np.stack(list(MarkerLayout.from_hmd(capture).corners.values()))
-        centres = [np.linalg.inv(cam.T_cam_from_hmd)[:3, 3] for cam in calibration.ego_cameras.values()]
+        centres = [camera_centre(cam.T_cam_from_hmd) for cam in calibration.ego_cameras.values()]
         return cls(headset_box(corners, np.reshape(centres, (-1, 3))), calibration.head_poses[sequence])
 
     def pixels(self, frame_id: int, camera: Camera, render: GaussianRender) -> torch.Tensor | None:
