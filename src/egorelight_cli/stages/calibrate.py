@@ -36,8 +36,8 @@ from egorelight_cli.artifacts import ArtifactWriter
 from egorelight_cli.config import Config
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.geometry.cameras import invert_rigid
-from egorelight_cli.geometry.rotations import camera_centre
 from egorelight_cli.geometry.rigid import mean_rotation, rotation_angle_deg
+from egorelight_cli.geometry.rotations import camera_centre
 from egorelight_cli.io.calibration import write_calibration
 from egorelight_cli.structures.calibration import STUDIO_HEAD_POSE_SOURCE, Calibration, EgoCameraCalibration, HeadPoses
 from egorelight_cli.io.capture import Capture, SequenceInfo, open_capture
