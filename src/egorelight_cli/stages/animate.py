@@ -256,12 +256,17 @@ class TrainingData:
                    np.concatenate([p.frame_ids for p in parts]))
 
 
-def reconstruction_target(vertices: np.ndarray, faces: np.ndarray, count: int,
+def surface_target(vertices: np.ndarray, faces: np.ndarray, count: int,
                           rng: np.random.Generator) -> tuple[torch.Tensor, torch.Tensor]:
-    """Up to ``count`` vertices of a reconstruction with their unit normals (float32 tensors)."""
-    normals = vertex_normals(np.asarray(vertices, np.float64), faces)
-    keep = np.arange(len(vertices)) if len(vertices) <= count else rng.choice(len(vertices), count, replace=False)
-    return (torch.as_tensor(vertices[keep], dtype=torch.float32), torch.as_tensor(normals[keep], dtype=torch.float32))
+    """Up to ``count`` vertices (M,3) of a surface ``vertices`` (V,3), ``faces`` (F,3) with their unit
+    normals (M,3), float32 tensors in the vertices' units; only vertices that ``faces`` use (a stray
+    vertex has no normal)."""
+    vertices = np.asarray(vertices, np.float64)
+    used = np.unique(faces)
+    normals = vertex_normals(vertices, faces)[used]
+    keep = np.arange(len(used)) if len(used) <= count else rng.choice(len(used), count, replace=False)
+    return (torch.as_tensor(vertices[used][keep], dtype=torch.float32),
+            torch.as_tensor(normals[keep], dtype=torch.float32))
 
 
 def animation_loss(model: AnimationModel, x: torch.Tensor, theta: torch.Tensor, targets: list, trees: list,
@@ -372,7 +377,7 @@ def build_training_data(model: AnimationModel, theta: np.ndarray, frame_ids: np.
     targets, trees = [], []
     for r in rows:
         v, f = recon[int(frame_ids[r])]
-        tp, tn = reconstruction_target(v, f, settings.target_points, rng)
+        tp, tn = surface_target(v, f, settings.target_points, rng)
         targets.append((tp.to(model.device), tn.to(model.device)))
         trees.append(cKDTree(tp.numpy().astype(np.float64)))
     return TrainingData(inputs[rows], torch.as_tensor(np.asarray(theta)[rows], dtype=torch.float32), targets, trees,

@@ -32,7 +32,6 @@ from scipy.spatial import cKDTree
 from egorelight_cli import console
 from egorelight_cli.config import Config, setting, settings_from_config
 from egorelight_cli.geometry.cameras import transform_points
-from egorelight_cli.geometry.normals import vertex_normals
 from egorelight_cli.io.capture import SequenceInfo, read_reconstructions
 from egorelight_cli.structures.mesh_sequence import MeshSequence, SurfaceSequence
 
@@ -60,10 +59,10 @@ def recon_targets(sequence: SequenceInfo, frame_ids: np.ndarray, count: int,
     """Frame id -> ``(points (M,3), unit normals (M,3))`` float32: up to ``count`` vertices of the
     multi-view reconstruction of each frame of ``frame_ids`` that has one in ``sequence`` (the
     reconstructions lie in the studio world, the frame of the motions the stages estimate)."""
-    from egorelight_cli.stages.animate import reconstruction_target
+    from egorelight_cli.stages.animate import surface_target
 
     rng = np.random.default_rng(seed)
-    return {fid: reconstruction_target(v, f, count, rng)
+    return {fid: surface_target(v, f, count, rng)
             for fid, (v, f) in sorted(read_reconstructions(sequence, frame_ids).items())}
 
 
@@ -72,6 +71,7 @@ def true_targets(truth: SurfaceSequence, frame_ids: np.ndarray, count: int, T_po
     """Frame id -> ``(points (M,3), unit normals (M,3))`` float32: up to ``count`` vertices of the
     true outer surface of each frame of ``frame_ids`` the truth has, in the frame of the meshes
     (``T_pose_frame_from_truth`` (4,4) applied)."""
+    from egorelight_cli.stages.animate import surface_target
     from egorelight_cli.stages.animate_eval import outer_faces
 
     rng = np.random.default_rng(seed)
@@ -80,12 +80,7 @@ def true_targets(truth: SurfaceSequence, frame_ids: np.ndarray, count: int, T_po
         if int(fid) not in truth.frame_ids:
             continue
         vertices = transform_points(T_pose_frame_from_truth, truth.vertices[truth.index_of(int(fid))].astype(np.float64))
-        faces = truth.faces[outer_faces(vertices, truth.faces)]
-        used = np.unique(faces)
-        normals = vertex_normals(vertices, faces)[used]
-        keep = np.arange(len(used)) if len(used) <= count else rng.choice(len(used), count, replace=False)
-        out[int(fid)] = (torch.as_tensor(vertices[used][keep], dtype=torch.float32),
-                         torch.as_tensor(normals[keep], dtype=torch.float32))
+        out[int(fid)] = surface_target(vertices, truth.faces[outer_faces(vertices, truth.faces)], count, rng)
     return out
 
 
