@@ -275,7 +275,7 @@ def invert_rigid(T):
 def camera_centre(T_cam_from_x: np.ndarray) -> np.ndarray:
     """(...,3) the camera's centre in frame ``x`` from ``T_cam_from_x`` (...,4,4) rigid (units of its
     translation): the translation of :func:`invert_rigid`."""
-    return np.asarray(invert_rigid(np.asarray(T_cam_from_x, np.float64)))[..., :3, 3]
+    return invert_rigid(np.asarray(T_cam_from_x, np.float64))[..., :3, 3]
 
 
 def transform_points(T: torch.Tensor, points: torch.Tensor) -> torch.Tensor:

@@ -257,7 +257,7 @@ class TrainingData:
 
 
 def surface_target(vertices: np.ndarray, faces: np.ndarray, count: int,
-                          rng: np.random.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+                   rng: np.random.Generator) -> tuple[torch.Tensor, torch.Tensor]:
     """Up to ``count`` vertices (M,3) of a surface ``vertices`` (V,3), ``faces`` (F,3) with their unit
     normals (M,3), float32 tensors in the vertices' units; only vertices that ``faces`` use (a stray
     vertex has no normal)."""

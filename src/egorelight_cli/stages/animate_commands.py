@@ -334,8 +334,8 @@ def _fit_surface(writer: ArtifactWriter, fit: str, capture: Capture, sequence: s
         surface = "the true outer surface (--fit-truth)"
     if not targets:
         raise EgorelightError(f"--fit-{fit}: no frame of the motion ({len(meshes.frame_ids)} frames, ids "
-                              f"{int(meshes.frame_ids[0])}-{int(meshes.frame_ids[-1])}) has {surface.split(' (')[0]} "
-                              f"in sequence {sequence!r}; is --seq the motion's sequence?")
+                              f"{int(meshes.frame_ids[0])}-{int(meshes.frame_ids[-1])}) has a target in sequence "
+                              f"{sequence!r} ({surface}); is --seq the motion's sequence?")
     fitted, summary = fit_to_surface(model, meshes, targets, TrainSettings.from_config(cfg), settings)
     writer.metrics.update({**summary, "fitted_to_groundtruth": fit == "truth", "fitted_to": fit})
     writer.units.update({"fit_chamfer_cm": f"cm, normal-filtered Chamfer to {surface}"})
