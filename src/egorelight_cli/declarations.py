@@ -129,9 +129,13 @@ STAGE_COMMANDS = (
                           "folder).", ("keypoints", "motion"), (".npz", "folder")),
                     calibration("With a capture/groundtruth/<seq> --gt: the calibration whose head poses placed the "
                                 "input keypoints; the truth is scored in their frame (a tracker's own world).",
-                                required=False)),
+                                required=False),
+                    Input("--fit-recon", "fit_recon", "Capture: then fit each frame's root and body DoFs so that the "
+                          "skinned character lies on its multi-view reconstruction of --seq (stages/ik_surface.py).",
+                          ("capture",))),
             options=(Option("--solver", "solver", "lm (default, fast) or lbfgs (the paper's baseline).",
-                            type=("lm", "lbfgs"), config_key="solver"),)),
+                            type=("lm", "lbfgs"), config_key="solver"),
+                     sequence(None, "With --fit-recon: the input's sequence, whose reconstructions are fitted."))),
     Command(("train", "egodepth"), "egodepth",
             "Fit the depth network to the ego_train sequences, supervised by the reconstructions.",
             "egorelight_cli.stages.egodepth_commands:train_command", model_out(),

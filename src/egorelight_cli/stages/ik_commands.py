@@ -17,6 +17,10 @@ keypoints: where those live in a world of their own (a headset tracker's), the t
 are taken into it (:func:`~egorelight_cli.synth.groundtruth.T_pose_frame_from_truth_world`) and
 only keypoint errors are scored (DoF errors need one world).
 
+``--fit-recon CAPTURE --seq S`` then moves each frame's root and body DoFs so that the skinned
+character lies on the capture's multi-view reconstruction of that frame
+(:mod:`egorelight_cli.stages.ik_surface`; ``train animate``'s third motion source in the demo).
+
 The motion artifact holds ``motion.npz`` (see :mod:`egorelight_cli.io.motion`) and, for a
 directory output, ``preview.png`` (fitted skeleton over the target keypoints for a few frames).
 The ik model artifact (``train ik``) is a model directory in the shared layout of
@@ -234,15 +238,21 @@ class IKCommands:
     run: StageRun
 
     def ik(self, input_path: Path, character_spec: str, model_path: Path | None, gt_path: Path | None,
-           calibration_path: Path | None, out: Path) -> Path:
+           calibration_path: Path | None, out: Path, fit_recon: Path | None = None,
+           sequence: str | None = None) -> Path:
         from egorelight_cli.stages.character_commands import load_character
+        from egorelight_cli.stages.ik_surface import SurfaceFitSettings
 
         cfg = self.run.config()
         settings = IKSettings.from_config(cfg)  # a bad config value fails before anything is read
+        SurfaceFitSettings.from_config(cfg)
+        recon = _recon_sequence(fit_recon, sequence)
         character, character_artifact = load_character(character_spec)
         source = load_ik_input(input_path, character, cfg)
         inputs = [a for a in (source.artifact, character_artifact) if a is not None]
         sources = source.sources + character_sources(character_spec, character_artifact)
+        if recon is not None:
+            inputs.append(recon[1])
         model = None
         if model_path is not None:
             model, model_artifact = load_ik_model(model_path)
@@ -272,6 +282,8 @@ class IKCommands:
                 writer.metrics.update({"prior": used.source, "prior_training_frames": used.num_training_frames})
             else:
                 result = passthrough_result(character, source.theta, source.frame_ids, settings.fps)
+            if recon is not None:
+                result = _fit_to_recon(writer, character, result, source.keypoints, recon[0], cfg)
             save_motion(writer, result.motion(character.skeleton.dof_names), source=source.info.get("source"))
             writer.metrics.update(fit_metrics(result))
             writer.metrics.update({k: v for k, v in source.info.items() if k != "source"})
@@ -311,6 +323,45 @@ class IKCommands:
         return self.run.produce(out, "model", write, inputs=inputs, source_files=sources)
 
 
+def _recon_sequence(capture_path: Path | None, sequence: str | None):
+    """``(SequenceInfo, capture artifact)`` of ``--fit-recon CAPTURE --seq S``, None without
+    ``--fit-recon``; a one-line error when the two do not come together or the sequence has no
+    reconstruction."""
+    from egorelight_cli.io.capture import open_capture
+
+    if capture_path is None:
+        if sequence is not None:
+            raise EgorelightError("--seq names the sequence of --fit-recon; give --fit-recon CAPTURE too")
+        return None
+    if sequence is None:
+        raise EgorelightError("--fit-recon needs --seq: the sequence whose reconstructions the motion is fitted to")
+    capture, artifact = open_capture(capture_path, [sequence])
+    seq = capture.sequence(sequence)
+    if not any(seq.recon_path(int(f)).is_file() for f in seq.frame_ids):
+        raise EgorelightError(f"--fit-recon needs multi-view reconstructions of sequence {sequence!r} "
+                              "(sequences/<seq>/recon/), which this capture does not have", capture_path)
+    return seq, artifact
+
+
+def _fit_to_recon(writer: ArtifactWriter, character: Character, result: IKResult, keypoints: Keypoints | None,
+                  sequence, cfg: Config) -> IKResult:
+    """``result`` with its DoFs fitted to ``sequence``'s reconstructions (stages/ik_surface.py)."""
+    from egorelight_cli.stages.animate_fit import recon_targets
+    from egorelight_cli.stages.ik_surface import SurfaceFitSettings, fit_motion_to_surface, with_theta
+
+    settings = SurfaceFitSettings.from_config(cfg)
+    targets = recon_targets(sequence, result.frame_ids, settings.target_points)
+    if not targets:
+        raise EgorelightError(f"--fit-recon: no frame of the motion (ids {int(result.frame_ids[0])}-"
+                              f"{int(result.frame_ids[-1])}) has a reconstruction in sequence {sequence.name!r}; "
+                              "is --seq the input's sequence?")
+    theta, summary = fit_motion_to_surface(character, result.theta, result.frame_ids, targets, settings)
+    writer.metrics.update(summary)
+    writer.units["surface_fit_chamfer_cm"] = "cm, normal-filtered point-to-plane Chamfer of the skinned character " \
+                                             "to the reconstruction"
+    return with_theta(character, result, theta, None if keypoints is None else keypoints.xyz.astype(np.float64))
+
+
 def _write_preview(writer: ArtifactWriter, character: Character, result: IKResult, keypoints: Keypoints | None,
                    cfg: Config) -> None:
     from egorelight_cli.io.images import write_image
@@ -330,5 +381,5 @@ def train_command(run: StageRun, motions: tuple[Path, ...], character: str, out:
 
 
 def ik_command(run: StageRun, input: Path, character: str, model: Path | None, gt: Path | None,
-               calibration: Path | None, out: Path) -> Path:
-    return IKCommands(run).ik(input, character, model, gt, calibration, out)
+               calibration: Path | None, fit_recon: Path | None, sequence: str | None, out: Path) -> Path:
+    return IKCommands(run).ik(input, character, model, gt, calibration, out, fit_recon, sequence)
