@@ -98,6 +98,27 @@ def test_validation_frames_are_set_aside_and_the_best_weights_kept(animate_input
     assert m["validation_frames"] == 0 and m["validation_samples"] == 0 and m["training_frames"] == 3
 
 
+def test_a_motion_artifact_and_its_copy_train_as_two_motions(animate_inputs, tmp_path):
+    """Two --motion artifacts with the same content at two paths (a copy) are two inputs, each
+    in the cache key (was an internal error: the second did not enter the key)."""
+    import shutil
+
+    from egorelight_cli.artifacts import ArtifactWriter
+    from egorelight_cli.io.motion import save_motion
+
+    with ArtifactWriter(tmp_path / "motion", kind="motion", stage="ik", config={}) as writer:
+        save_motion(writer, read_motion_npz(animate_inputs["capture"] / "groundtruth" / "ego_train" / "motion.npz"))
+    shutil.copytree(tmp_path / "motion", tmp_path / "copy")
+    out = tmp_path / "model"
+    assert _run("--preset", "tiny", "-q", "--set", "train.steps=2", "train", "animate", "--capture",
+                animate_inputs["capture"], "--motion", tmp_path / "motion", "--motion", tmp_path / "copy",
+                "--pointcloud", animate_inputs["root"] / "ego_train_cloud.npz", "--out", out) == 0
+    m = _metrics(out)
+    assert m["training_motions"] == 2 and m["training_frames"] == 6
+    inputs = json.loads((out / "manifest.json").read_text())["inputs"]
+    assert {Path(i["path"]).name for i in inputs if i["kind"].endswith("/motion")} == {"motion", "copy"}
+
+
 def _motion_off_by(source: Path, out: Path, sigma_m: float, seed: int) -> Path:
     """``source`` with its root translation off by N(0, sigma_m) per axis and frame (a stand-in for
     a headset estimate: the tiny capture has too few frames to train egopose)."""

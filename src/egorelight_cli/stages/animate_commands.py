@@ -172,7 +172,8 @@ class AnimateCommands:
                                   f"sequence {sequence!r}", seq.root / "recon")
         motion_artifacts, cloud_artifact, lone = _motion_and_cloud_artifacts(motion_paths, pointcloud_path, no_depth)
         inputs = [capture_artifact, character_artifact, *motion_artifacts, cloud_artifact]
-        inputs = list({a.digest: a for a in inputs if a is not None}.values())  # a motion given twice counts once
+        # a motion given twice counts once; a copy of it at another path is an input of its own
+        inputs = list({(a.digest, str(a.path)): a for a in inputs if a is not None}.values())
         sources = character_sources(character_spec, character_artifact) + lone
         sources = list(dict.fromkeys(sources + [seq.recon_path(f) for f in sorted(recon)]))
         init = None
