@@ -98,11 +98,15 @@ def _commands(out: str) -> list[str]:
     return [" ".join(line.split()) for line in out.replace("\\\n", " ").splitlines()]
 
 
-def test_animate_trains_on_the_estimated_motion_and_the_mocap(tmp_path):
+def test_animate_trains_on_the_estimated_motion_the_mocap_and_the_mocap_fitted_to_the_surface(tmp_path):
     out = _commands(_dry_run(tmp_path, f"{tmp_path}/models/animate/manifest.json"))
     train = next(line for line in out if " train animate " in line)
-    assert f"--motion {tmp_path}/motion/ego_train --motion {tmp_path}/motion_mocap/ego_train" in train
+    assert (f"--motion {tmp_path}/motion/ego_train --motion {tmp_path}/motion_mocap/ego_train "
+            f"--motion {tmp_path}/motion_surface/ego_train") in train
     assert any(f"ik --in {tmp_path}/keypoints/ego_train " in line for line in out)  # egopose -> ik on it
+    surface = next(line for line in out if f"--out {tmp_path}/motion_surface/ego_train" in line)
+    assert f"ik --in {tmp_path}/capture/sequences/ego_train/mocap.npz " in surface
+    assert surface.rstrip().endswith(f"--fit-recon {tmp_path}/capture --seq ego_train")
     alone = _dry_run(tmp_path, "ANIMATE_TRAIN_MOTIONS=motion", f"{tmp_path}/models/animate/manifest.json")
     train = next(line for line in _commands(alone) if " train animate " in line)
     assert f"--motion {tmp_path}/motion/ego_train " in train and "motion_mocap" not in train
