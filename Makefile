@@ -242,8 +242,9 @@ egodepth-curve: $(foreach n,$(EGODEPTH_CURVE_FRAMES),$(SUBJECT)/curves/egodepth/
 # (motion_surface), motions under which skinning needs no correction. Same capture, `test` P2S cm,
 # whole body (ego-visible), two sources -> three: estimated 2.53 (2.70) -> 2.56 (2.75), IK of true
 # keypoints 0.94 (0.90) -> 0.96 (0.91), simulator DoFs 1.26 (1.30) -> 0.64 (0.56), skinning
-# 2.96 / 1.23 / 0.63 (0.56), `wild` 5.75 -> 5.77 (6.08). Under the simulator's DoFs the network now ties skinning (0.640 vs 0.632;
-# seed 1: 0.643; 1500 / 6000 steps: 0.649 / 0.657; without motion_mocap 0.636 but the IK row 1.18).
+# 2.96 / 1.23 / 0.63 (0.56), `wild` 5.75 -> 5.77 (6.08). Under the simulator's DoFs the network
+# now ties skinning (0.640 vs 0.632; seed 1: 0.643; 1500 / 6000 steps: 0.649 / 0.657; without
+# motion_mocap 0.636 but the IK row 1.18).
 # ANIMATE_TRAIN_MOTIONS="motion" is the estimated motion alone; "motion_mocap" the mocap alone.
 # The depth-agnostic student is fine-tuned with xi = 0 on the flat-lit frames of ANIMATE_STUDENT_SEQ
 # (for the appearance stages).
