@@ -300,10 +300,9 @@ def _fit_sources(fit: str, capture: Capture | None, capture_path: Path | None, s
         raise EgorelightError(f"--fit-{fit} needs --capture (a capture with "
                               + ("ground truth)" if fit == "truth" else "multi-view reconstructions)"))
     if fit == "recon":
-        seq = capture.sequence(sequence)
-        if not any(seq.recon_path(int(f)).is_file() for f in seq.frame_ids):
-            raise EgorelightError(f"--fit-recon needs multi-view reconstructions of sequence {sequence!r} "
-                                  "(sequences/<seq>/recon/), which this capture does not have", capture_path)
+        from egorelight_cli.stages.animate_fit import require_reconstructions
+
+        require_reconstructions(capture.sequence(sequence), capture_path)
         return []
     path = capture.groundtruth_file(sequence, "meshes.npz")
     if path is None:
@@ -318,7 +317,8 @@ def _fit_surface(writer: ArtifactWriter, fit: str, capture: Capture, sequence: s
     motion) or the true surface (``"truth"``, in the frame of ``calibration``'s head poses when given,
     as :func:`_score` takes it); :mod:`egorelight_cli.stages.animate_fit`."""
     from egorelight_cli.stages.animate import TrainSettings
-    from egorelight_cli.stages.animate_fit import FitSettings, fit_to_surface, recon_targets, true_targets
+    from egorelight_cli.stages.animate_fit import (FitSettings, fit_to_surface, recon_targets, require_targets,
+                                                   true_targets)
 
     settings = FitSettings.from_config(cfg)
     if fit == "recon":
@@ -333,10 +333,7 @@ def _fit_surface(writer: ArtifactWriter, fit: str, capture: Capture, sequence: s
              else T_pose_frame_from_truth_world(capture.groundtruth_root(), calibration, sequence))
         targets = true_targets(groundtruth_meshes(capture, sequence), meshes.frame_ids, settings.target_points, T)
         surface = "the true outer surface (--fit-truth)"
-    if not targets:
-        raise EgorelightError(f"--fit-{fit}: no frame of the motion ({len(meshes.frame_ids)} frames, ids "
-                              f"{int(meshes.frame_ids[0])}-{int(meshes.frame_ids[-1])}) has a target in sequence "
-                              f"{sequence!r} ({surface}); is --seq the motion's sequence?")
+    require_targets(targets, meshes.frame_ids, f"--fit-{fit}", sequence, surface)
     fitted, summary = fit_to_surface(model, meshes, targets, TrainSettings.from_config(cfg), settings)
     writer.metrics.update({**summary, "fitted_to_groundtruth": fit == "truth", "fitted_to": fit})
     writer.units.update({"fit_chamfer_cm": f"cm, normal-filtered Chamfer to {surface}"})

@@ -31,6 +31,7 @@ from scipy.spatial import cKDTree
 
 from egorelight_cli import console
 from egorelight_cli.config import Config, setting, settings_from_config
+from egorelight_cli.errors import EgorelightError
 from egorelight_cli.geometry.cameras import transform_points
 from egorelight_cli.io.capture import SequenceInfo, read_reconstructions
 from egorelight_cli.structures.mesh_sequence import MeshSequence, SurfaceSequence
@@ -64,6 +65,23 @@ def recon_targets(sequence: SequenceInfo, frame_ids: np.ndarray, count: int,
     rng = np.random.default_rng(seed)
     return {fid: surface_target(v, f, count, rng)
             for fid, (v, f) in sorted(read_reconstructions(sequence, frame_ids).items())}
+
+
+def require_reconstructions(sequence: SequenceInfo, capture_path) -> None:
+    """A one-line error unless ``sequence`` has a multi-view reconstruction of at least one frame
+    (``--fit-recon`` of ``animate`` and ``ik``)."""
+    if not any(sequence.recon_path(int(f)).is_file() for f in sequence.frame_ids):
+        raise EgorelightError(f"--fit-recon needs multi-view reconstructions of sequence {sequence.name!r} "
+                              "(sequences/<seq>/recon/), which this capture does not have", capture_path)
+
+
+def require_targets(targets: dict, frame_ids: np.ndarray, option: str, sequence: str, surface: str) -> None:
+    """A one-line error when no frame of ``frame_ids`` (T,) found a target (``targets`` empty):
+    ``option`` (``--fit-recon``) was given another sequence's motion, most likely."""
+    if not targets:
+        raise EgorelightError(f"{option}: no frame of the motion ({len(frame_ids)} frames, ids {int(frame_ids[0])}-"
+                              f"{int(frame_ids[-1])}) has a target in sequence {sequence!r} ({surface}); is --seq the "
+                              "motion's sequence?")
 
 
 def true_targets(truth: SurfaceSequence, frame_ids: np.ndarray, count: int, T_pose_frame_from_truth: np.ndarray,

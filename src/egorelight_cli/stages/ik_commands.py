@@ -245,7 +245,7 @@ class IKCommands:
 
         cfg = self.run.config()
         settings = IKSettings.from_config(cfg)  # a bad config value fails before anything is read
-        SurfaceFitSettings.from_config(cfg)
+        SurfaceFitSettings.from_config(cfg)  # likewise ik --fit-recon's
         recon = _recon_sequence(fit_recon, sequence)
         character, character_artifact = load_character(character_spec)
         source = load_ik_input(input_path, character, cfg)
@@ -282,6 +282,7 @@ class IKCommands:
                 writer.metrics.update({"prior": used.source, "prior_training_frames": used.num_training_frames})
             else:
                 result = passthrough_result(character, source.theta, source.frame_ids, settings.fps)
+            keypoint_fit = result
             if recon is not None:
                 result = _fit_to_recon(writer, character, result, source.keypoints, recon[0], cfg)
             save_motion(writer, result.motion(character.skeleton.dof_names), source=source.info.get("source"))
@@ -290,6 +291,9 @@ class IKCommands:
             writer.metrics["input"] = source.info.get("source")
             if gt_keypoints is not None or gt_motion is not None:
                 writer.metrics.update(gt_metrics(character, result, gt_keypoints, gt_motion))
+                if result is not keypoint_fit:  # --fit-recon's baseline: the keypoint fit it started from
+                    writer.metrics.update({f"keypoint_fit_{k}": v for k, v in
+                                           gt_metrics(character, keypoint_fit, gt_keypoints, gt_motion).items()})
                 if gt_frame is not None:
                     writer.metrics["groundtruth_frame"] = gt_frame
             writer.runtime["solver"] = result.solver
@@ -335,26 +339,23 @@ def _recon_sequence(capture_path: Path | None, sequence: str | None):
         return None
     if sequence is None:
         raise EgorelightError("--fit-recon needs --seq: the sequence whose reconstructions the motion is fitted to")
+    from egorelight_cli.stages.animate_fit import require_reconstructions
+
     capture, artifact = open_capture(capture_path, [sequence])
     seq = capture.sequence(sequence)
-    if not any(seq.recon_path(int(f)).is_file() for f in seq.frame_ids):
-        raise EgorelightError(f"--fit-recon needs multi-view reconstructions of sequence {sequence!r} "
-                              "(sequences/<seq>/recon/), which this capture does not have", capture_path)
+    require_reconstructions(seq, capture_path)
     return seq, artifact
 
 
 def _fit_to_recon(writer: ArtifactWriter, character: Character, result: IKResult, keypoints: Keypoints | None,
                   sequence, cfg: Config) -> IKResult:
     """``result`` with its DoFs fitted to ``sequence``'s reconstructions (stages/ik_surface.py)."""
-    from egorelight_cli.stages.animate_fit import recon_targets
+    from egorelight_cli.stages.animate_fit import recon_targets, require_targets
     from egorelight_cli.stages.ik_surface import SurfaceFitSettings, fit_motion_to_surface, with_theta
 
     settings = SurfaceFitSettings.from_config(cfg)
     targets = recon_targets(sequence, result.frame_ids, settings.target_points)
-    if not targets:
-        raise EgorelightError(f"--fit-recon: no frame of the motion (ids {int(result.frame_ids[0])}-"
-                              f"{int(result.frame_ids[-1])}) has a reconstruction in sequence {sequence.name!r}; "
-                              "is --seq the input's sequence?")
+    require_targets(targets, result.frame_ids, "--fit-recon", sequence.name, "the multi-view reconstruction")
     theta, summary = fit_motion_to_surface(character, result.theta, result.frame_ids, targets, settings)
     writer.metrics.update(summary)
     writer.units["surface_fit_chamfer_cm"] = "cm, normal-filtered point-to-plane Chamfer of the skinned character " \
