@@ -24,6 +24,7 @@ CHAIN = {
     "capture": "capture", "character": "character", "calibration": "calibration",
     "models/egopose": "model", "keypoints/test": "keypoints", "models/ik": "model", "motion/test": "motion",
     "models/ik_default": "model", "motion_bootstrap/ego_train": "motion", "motion_surface/ego_train": "motion",
+    "motion_surface/relight_train": "motion",
     "models/egodepth": "model", "pointcloud/test": "pointcloud", "models/animate": "model",
     "meshes/test": "meshes", "models/geolift": "model", "uvmaps/test": "uvmaps", "models/relight": "model",
     "renders/test": "renders", "renders_studio/test": "renders", "renders_truth/test": "renders",

@@ -112,6 +112,18 @@ def test_animate_trains_on_the_estimated_motion_the_mocap_and_the_mocap_fitted_t
     assert f"--motion {tmp_path}/motion/ego_train " in train and "motion_mocap" not in train
 
 
+def test_the_student_is_fine_tuned_on_the_mocap_and_the_mocap_fitted_to_the_surface(tmp_path):
+    out = _commands(_dry_run(tmp_path, f"{tmp_path}/models/animate_student/manifest.json"))
+    train = next(line for line in out if " train animate --no-depth " in line)
+    assert (f"--init {tmp_path}/models/animate " in train and "--seq relight_train "
+            f"--motion {tmp_path}/motion_mocap/relight_train --motion {tmp_path}/motion_surface/relight_train " in train)
+    surface = next(line for line in out if f"--out {tmp_path}/motion_surface/relight_train" in line)
+    assert surface.rstrip().endswith(f"--fit-recon {tmp_path}/capture --seq relight_train")
+    alone = _dry_run(tmp_path, "ANIMATE_STUDENT_MOTIONS=motion_mocap", f"{tmp_path}/models/animate_student/manifest.json")
+    train = next(line for line in _commands(alone) if " train animate --no-depth " in line)
+    assert "motion_surface/relight_train" not in train
+
+
 def test_geolift_trains_on_the_student_meshes_refined_onto_the_reconstruction(tmp_path):
     out = _dry_run(tmp_path, f"{tmp_path}/models/geolift/manifest.json")
     for seq in ("relight_train", "ego_train"):
