@@ -244,7 +244,14 @@ egodepth-curve: $(foreach n,$(EGODEPTH_CURVE_FRAMES),$(SUBJECT)/curves/egodepth/
 # keypoints 0.94 (0.90) -> 0.96 (0.91), simulator DoFs 1.26 (1.30) -> 0.64 (0.56), skinning
 # 2.96 / 1.23 / 0.63 (0.56), `wild` 5.75 -> 5.77 (6.08). Under the simulator's DoFs the network
 # now ties skinning (0.640 vs 0.632; seed 1: 0.643; 1500 / 6000 steps: 0.649 / 0.657; without
-# motion_mocap 0.636 but the IK row 1.18).
+# motion_mocap 0.636 but the IK row 1.18). Issue 21's twenty-first session: neither relight_train's
+# 128 reconstructed frames as extra depth-free samples (mocap + surface: 0.640; surface only: 0.639)
+# nor the paper's UV 128 (stages/animate.yaml) turns the tie into a win, and the tie is near what the
+# inputs allow: a per-vertex ridge regression of the TRUE residual (normal offset of the truth from
+# the skinned character under the simulator's DoFs) on the body DoFs, fitted on ego_train, brings
+# test to 0.624 at best against skinning's 0.631 (its constant part alone: 0.660), and stepping
+# each skinned vertex to the ego point cloud along its normal takes the ego-visible surface
+# 0.573 -> 0.555 on the posed frames.
 # ANIMATE_TRAIN_MOTIONS="motion" is the estimated motion alone; "motion_mocap" the mocap alone.
 # The depth-agnostic student is fine-tuned with xi = 0 on the flat-lit frames of ANIMATE_STUDENT_SEQ
 # (for the appearance stages) under ANIMATE_STUDENT_MOTIONS. Since issue 21's twenty-first session
