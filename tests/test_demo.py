@@ -27,7 +27,8 @@ CHAIN = {
     "motion_surface/relight_train": "motion",
     "models/egodepth": "model", "pointcloud/test": "pointcloud", "models/animate": "model",
     "meshes/test": "meshes", "models/geolift": "model", "uvmaps/test": "uvmaps", "models/relight": "model",
-    "renders/test": "renders", "renders_studio/test": "renders", "renders_truth/test": "renders",
+    "renders/test": "renders", "renders_studio/test": "renders", "renders_surface/test": "renders",
+    "renders_truth/test": "renders",
     "meshes_fit/test": "meshes", "renders_fit/test": "renders", "envmap/wild": "envmap", "composite": "composite",
 }
 

@@ -16,7 +16,7 @@ def _dry_run(tmp_path, *targets) -> str:
     return result.stdout
 
 
-def test_the_demo_relights_test_on_tracked_studio_and_true_keypoint_meshes(tmp_path):
+def test_the_demo_relights_test_on_tracked_studio_surface_and_true_keypoint_meshes(tmp_path):
     out = _dry_run(tmp_path, "subject")
     assert f"--out {tmp_path}/renders/test" in out
     assert f"--out {tmp_path}/renders_studio/test" in out
@@ -26,6 +26,13 @@ def test_the_demo_relights_test_on_tracked_studio_and_true_keypoint_meshes(tmp_p
     truth = _dry_run(tmp_path, f"{tmp_path}/renders_truth/test/manifest.json")
     assert f"ik --in {tmp_path}/capture/groundtruth/test/keypoints.npz" in truth
     assert f"animate --no-depth --motion {tmp_path}/motion_truth/test" in truth
+    # the surface-tracked row only where the sequence has reconstructions
+    assert f"capture/sequences/test/recon ]; then" in out and "renders_surface/test/manifest.json" in out
+    surface = _dry_run(tmp_path, f"{tmp_path}/renders_surface/test/manifest.json")
+    line = next(line for line in surface.splitlines() if f"--out {tmp_path}/meshes_surface/test" in line)
+    assert f"animate --no-depth --motion {tmp_path}/motion_surface/test" in line
+    assert f"--fit-recon {tmp_path}/capture --seq test" in surface
+    assert f"--meshes {tmp_path}/meshes_surface/test --uvmaps {tmp_path}/uvmaps_surface/test" in surface
     # the row on meshes fitted to the true surface, likewise only with a true surface
     assert f"groundtruth/test/meshes.npz ]; then" in out and "renders_fit/test/manifest.json" in out
     fit = _dry_run(tmp_path, f"{tmp_path}/renders_fit/test/manifest.json")
