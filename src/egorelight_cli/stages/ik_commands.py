@@ -33,6 +33,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -50,6 +51,9 @@ from egorelight_cli.stages.ik import (IK_MODEL_TYPE, IKModel, IKResult, IKSettin
                                       fit_global_scale, fit_metrics, fitted_keypoints, gt_metrics, scale_keypoints,
                                       solve_ik, train_ik_model)
 from egorelight_cli.structures.character import Character
+
+if TYPE_CHECKING:
+    from egorelight_cli.stages.ik_surface import SurfaceFitSettings
 
 PREVIEW_PNG = "preview.png"
 
@@ -245,7 +249,7 @@ class IKCommands:
 
         cfg = self.run.config()
         settings = IKSettings.from_config(cfg)  # a bad config value fails before anything is read
-        SurfaceFitSettings.from_config(cfg)  # likewise ik --fit-recon's
+        surface_settings = SurfaceFitSettings.from_config(cfg)  # likewise ik --fit-recon's
         recon = _recon_sequence(fit_recon, sequence)
         character, character_artifact = load_character(character_spec)
         source = load_ik_input(input_path, character, cfg)
@@ -284,7 +288,7 @@ class IKCommands:
                 result = passthrough_result(character, source.theta, source.frame_ids, settings.fps)
             keypoint_fit = result
             if recon is not None:
-                result = _fit_to_recon(writer, character, result, source.keypoints, recon[0], cfg)
+                result = _fit_to_recon(writer, character, result, source.keypoints, recon[0], surface_settings)
             save_motion(writer, result.motion(character.skeleton.dof_names), source=source.info.get("source"))
             writer.metrics.update(fit_metrics(result))
             writer.metrics.update({k: v for k, v in source.info.items() if k != "source"})
@@ -348,12 +352,11 @@ def _recon_sequence(capture_path: Path | None, sequence: str | None):
 
 
 def _fit_to_recon(writer: ArtifactWriter, character: Character, result: IKResult, keypoints: Keypoints | None,
-                  sequence, cfg: Config) -> IKResult:
+                  sequence, settings: SurfaceFitSettings) -> IKResult:
     """``result`` with its DoFs fitted to ``sequence``'s reconstructions (stages/ik_surface.py)."""
     from egorelight_cli.stages.animate_fit import recon_targets, require_targets
-    from egorelight_cli.stages.ik_surface import SurfaceFitSettings, fit_motion_to_surface, with_theta
+    from egorelight_cli.stages.ik_surface import fit_motion_to_surface, with_theta
 
-    settings = SurfaceFitSettings.from_config(cfg)
     targets = recon_targets(sequence, result.frame_ids, settings.target_points)
     require_targets(targets, result.frame_ids, "--fit-recon", sequence.name, "the multi-view reconstruction")
     theta, summary = fit_motion_to_surface(character, result.theta, result.frame_ids, targets, settings)
