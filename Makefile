@@ -167,7 +167,7 @@ $(SUBJECT)/motion/%/manifest.json: $(SUBJECT)/keypoints/%/manifest.json $(CHARAC
 IK_FROM = $(EGO) $(EGOFLAGS) ik --in $(1) --character $(SUBJECT)/character --model $(SUBJECT)/models/ik \
 	$(call GT,$(2)) --out $(3)
 
-# motion_mocap/<seq>: from the studio's markerless mocap (training supervision of the avatar)
+# motion_mocap/<seq>: from the studio's markerless mocap (one of the avatar's training motions)
 $(SUBJECT)/motion_mocap/%/manifest.json: $(CAPTURE) $(CHARACTER) $(IK_MODEL)
 	$(call IK_FROM,$(SUBJECT)/capture/sequences/$*/mocap.npz,$*,$(SUBJECT)/motion_mocap/$*)
 
@@ -204,7 +204,7 @@ $(eval $(call PER_FRAME_RULES,pointcloud,$(CAPTURE) $(CALIBRATION) $(EGODEPTH_MO
 # default one on CURVE_FRAMES frames (evenly spaced over the training sequence after egopose's
 # validation split; 0 = all of them). egopose's model scores SEQ itself (with the mean-pose
 # baseline); egodepth's point clouds of SEQ are scored next to SGBM on the same frames.
-# On the cpu capture egopose trains on the headset-only ego_bulk (1,000 frames) and egodepth on the
+# On the cpu capture egopose trains on the headset-only ego_bulk (1,200 frames) and egodepth on the
 # 128-frame ego_train; CURVE_FRAMES, when given, sets both.
 EGOPOSE_CURVE_FRAMES ?= $(or $(CURVE_FRAMES),32 128 512 0)
 EGODEPTH_CURVE_FRAMES ?= $(or $(CURVE_FRAMES),8 16 32 64)
@@ -243,7 +243,7 @@ egodepth-curve: $(foreach n,$(EGODEPTH_CURVE_FRAMES),$(SUBJECT)/curves/egodepth/
 # whole body (ego-visible), two sources -> three: estimated 2.53 (2.70) -> 2.56 (2.75), IK of true
 # keypoints 0.94 (0.90) -> 0.96 (0.91), simulator DoFs 1.26 (1.30) -> 0.64 (0.56), skinning
 # 2.96 / 1.23 / 0.63 (0.56), `wild` 5.75 -> 5.77 (6.08). Under the simulator's DoFs the network
-# now ties skinning (0.640 vs 0.632; seed 1: 0.643; 1500 / 6000 steps: 0.649 / 0.657; without
+# now ties skinning (0.640 vs 0.631; seed 1: 0.643; 1500 / 6000 steps: 0.649 / 0.657; without
 # motion_mocap 0.636 but the IK row 1.18). Issue 21's twenty-first session: neither relight_train's
 # 128 reconstructed frames as extra depth-free samples (mocap + surface: 0.640; surface only: 0.639)
 # nor the paper's UV 128 (stages/animate.yaml) turns the tie into a win, and the tie is near what the
@@ -308,10 +308,11 @@ animate-truth: $(SUBJECT)/meshes/$(SEQ)/manifest.json \
 	@$(BIN)/python -m egorelight_cli.report.table --keys full_p2s_cm,no_depth_p2s_cm,skinning_p2s_cm,full_p2s_ego_visible_cm,no_depth_p2s_ego_visible_cm,skinning_p2s_ego_visible_cm $^
 
 # ---------------------------------------------------------------- geolift (Sec. geometry lifting)
-# meshes_student/<seq>: the depth-agnostic student driven by the studio's mocap (the appearance
-# stages' training meshes). GeoLift trains on the flat-lit frames of GEOLIFT_TRAIN_SEQS (relight_train
-# as in the paper, plus ego_train's flat frames: on the cpu demo 12 frames alone do not generalise)
-# and runs on any tracked meshes/<seq>, with the sequence's lighting features (rho, chi).
+# meshes_student/<seq>: the depth-agnostic student driven by the studio's mocap (relight's training
+# meshes and envmap's colour-sync meshes; GeoLift trains on meshes_recon/<seq> below). GeoLift trains on
+# the flat-lit frames of GEOLIFT_TRAIN_SEQS (relight_train as in the paper, plus ego_train's flat frames:
+# measured when relight_train had 32 frames, 12 of them flat-lit, which alone did not generalise) and runs on any
+# tracked meshes/<seq>, with the sequence's lighting features (rho, chi).
 GEOLIFT_MODEL := $(SUBJECT)/models/geolift/manifest.json
 GEOLIFT_TRAIN_SEQS ?= relight_train ego_train
 
@@ -380,8 +381,9 @@ $(eval $(call PER_FRAME_RULES,renders,$(SUBJECT)/meshes/%/manifest.json $(SUBJEC
 
 # The same avatar and protocol on better meshes (issue 18's rows that show what tracking costs):
 # renders_studio/<seq>: the meshes a lightstage tracks (its markerless mocap -> the student), no
-# egocentric error; renders_truth/<seq>: meshes from the TRUE keypoints (ground truth, evaluation
-# only), what remains is the avatar's own error (skeleton fit, the student's surface).
+# egocentric error; renders_surface/<seq>: its surface tracking (below); renders_truth/<seq>: meshes
+# from the TRUE keypoints (ground truth, evaluation only), what remains is the avatar's own error
+# (skeleton fit, the student's surface); renders_fit/<seq>: those fitted onto the TRUE surface.
 $(SUBJECT)/renders_studio/%/manifest.json: $(SUBJECT)/meshes_student/%/manifest.json \
 		$(SUBJECT)/uvmaps_student/%/manifest.json $(RELIGHT_MODEL) $(CHARACTER) $(CAPTURE) $(CALIBRATION)
 	$(call RELIGHT_OF,$(SUBJECT)/meshes_student/$*,$(SUBJECT)/uvmaps_student/$*,$*,$(SUBJECT)/renders_studio/$*)
@@ -405,7 +407,8 @@ $(SUBJECT)/meshes_surface/%/manifest.json: $(SUBJECT)/motion_surface/%/manifest.
 		$(CHARACTER) $(CAPTURE)
 	$(call STUDENT_FROM,$(SUBJECT)/motion_surface/$*,$*,$(SUBJECT)/meshes_surface/$*)
 
-# uvmaps_<row>/<seq> and renders_<row>/<seq> of the meshes_<row>/<seq> of an evaluation row
+# uvmaps_<row>/<seq> and renders_<row>/<seq> of the meshes_<row>/<seq> of a relight row (surface: a studio
+# row; truth, fit: evaluation only)
 define RELIGHT_ROW_RULES
 $$(SUBJECT)/uvmaps_$(1)/%/manifest.json: $$(SUBJECT)/meshes_$(1)/%/manifest.json $$(GEOLIFT_MODEL) $$(CHARACTER) \
 		$$(CAPTURE)
