@@ -11,7 +11,7 @@ import torch
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.geometry.cameras import Camera, look_at, project
 from egorelight_cli.render.gaussian_pairs import T_MIN
-from egorelight_cli.render.gaussian_projection import ALPHA_MAX
+from egorelight_cli.render.gaussian_projection import ALPHA_MAX, image_tangent_bounds, in_field_of_view
 from egorelight_cli.render.gaussians import render_gaussians
 from egorelight_cli.render.gaussians_reference import render_gaussians_dense
 from egorelight_cli.structures.gaussians import GaussianSet
@@ -186,6 +186,26 @@ def test_fisheye_renders_gaussians_beyond_90_degrees():
     assert out.alpha.max() > 0.5
     _close(out.alpha, dense.alpha, 1e-12)
     np.testing.assert_allclose(out.expected_depth[peak].item(), 0.6, atol=1e-12)  # fisheye depth is range
+
+
+def test_pinhole_culls_gaussians_far_outside_its_field_of_view():
+    # the composite's front camera (k1 < 0, k2 > 0: the radial curve rises for ever, so x/z = 10 is
+    # still "valid"): a small Gaussian 2 m away beside the camera, ~84 degrees off-axis, projected
+    # through the polynomial far past the lens became a splat over the whole image (issue 18)
+    camera = _camera("pinhole", width=80, height=60, focal=40.0, dist=[-0.0507, 0.01455, 0.0, 0.0, 0.0])
+    beside = _single([2.0, 0.0, 0.2], 0.02, opacity=0.9)
+    x_lo, x_hi, y_lo, y_hi = image_tangent_bounds(camera)
+    assert x_hi < 2.0 / 0.2 and x_lo < 0 < x_hi and y_lo < 0 < y_hi
+    out = render_gaussians(beside, camera)
+    assert out.stats.visible_gaussians == 0 and float(out.alpha.max()) == 0.0
+    # one just outside the image's edge (inside the margin) still reaches into it, as before
+    x_edge = 0.5 * (x_hi + image_tangent_bounds(camera, margin=0.0)[1])
+    edge = _single([x_edge * 1.0, 0.0, 1.0], 0.08, opacity=0.9)
+    out = render_gaussians(edge, camera)
+    assert out.stats.visible_gaussians == 1 and float(out.alpha[:, -1].max()) > 0.1
+    _close(out.alpha, render_gaussians_dense(edge, camera).alpha, 1e-12)
+    # the fisheye keeps everything up to its valid angle (test above)
+    assert bool(in_field_of_view(torch.tensor([[2.0, 0.0, 0.2]]), _camera("fisheye")).all())
 
 
 def test_background_and_empty_image():

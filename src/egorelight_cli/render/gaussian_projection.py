@@ -14,7 +14,12 @@ Maths (3DGS, Kerbl et al. 2023, Eq. 5; Zwicker et al. 2002):
   set to 0 below ``ALPHA_MIN`` (1/255, as 3DGS);
 * the sort key ("depth") is the camera-frame ``z`` for a pinhole and the distance from the
   camera centre for a fisheye (whose rays can point sideways or backwards, where ``z`` is not an
-  order along the ray).
+  order along the ray);
+* a pinhole camera culls the Gaussians whose centre lies outside its field of view widened by
+  ``FOV_MARGIN`` (3DGS's 1.3 tan(fov/2) limit): its distortion polynomial describes the lens only
+  near the image, and far off-axis (x/z ~ 10) the projection and its Jacobian grow without bound,
+  turning a centimetre Gaussian beside the camera into a splat over the whole image. A fisheye's
+  projection stays bounded up to its valid angle and needs no such cut.
 
 Pixel ``(row i, column j)`` has its centre at ``(u, v) = (j, i)`` (DESIGN Sec. 4).
 """
@@ -26,7 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from egorelight_cli.geometry.cameras import Camera, project
+from egorelight_cli.geometry.cameras import Camera, project, unproject_to_rays
 from egorelight_cli.geometry.projection_jacobian import projection_jacobian
 from egorelight_cli.structures.gaussians import GaussianSet
 
@@ -34,6 +39,7 @@ ALPHA_MIN = 1.0 / 255.0  # splats fainter than this at a pixel are skipped (3DGS
 ALPHA_MAX = 0.99  # a single splat never makes a pixel fully opaque (3DGS), so T stays > 0
 EPS2D = 0.3  # pixels^2 added to every 2D covariance (3DGS / gsplat default)
 NEAR_M = 0.01  # Gaussians closer to the camera centre than this are culled
+FOV_MARGIN = 0.3  # pinhole: centres beyond the image's x/z, y/z range widened by this share of its half-width are culled
 _BOX_MARGIN = 1e-4
 
 
@@ -76,6 +82,32 @@ def sort_depth(points_cam: torch.Tensor, model: str) -> torch.Tensor:
     return points_cam[:, 2] if model == "pinhole" else torch.linalg.vector_norm(points_cam, dim=-1)
 
 
+def image_tangent_bounds(camera: Camera, margin: float = FOV_MARGIN) -> tuple[float, float, float, float]:
+    """``(x_lo, x_hi, y_lo, y_hi)``: the range of ``x/z`` and ``y/z`` of a pinhole camera's image (the
+    undistorted rays through its border pixels' outer edges), each side widened by ``margin`` times the
+    range's half-width."""
+    w, h = camera.width, camera.height
+    u = np.linspace(-0.5, w - 0.5, max(w, 2) + 1)
+    v = np.linspace(-0.5, h - 0.5, max(h, 2) + 1)
+    border = np.concatenate([np.stack([u, np.full_like(u, -0.5)], -1), np.stack([u, np.full_like(u, h - 0.5)], -1),
+                             np.stack([np.full_like(v, -0.5), v], -1), np.stack([np.full_like(v, w - 0.5), v], -1)])
+    rays = unproject_to_rays(border, camera.K, camera.dist, camera.model)
+    x, y = rays[:, 0] / rays[:, 2], rays[:, 1] / rays[:, 2]
+    x_pad, y_pad = 0.5 * margin * (x.max() - x.min()), 0.5 * margin * (y.max() - y.min())
+    return float(x.min() - x_pad), float(x.max() + x_pad), float(y.min() - y_pad), float(y.max() + y_pad)
+
+
+def in_field_of_view(points_cam: torch.Tensor, camera: Camera, margin: float = FOV_MARGIN) -> torch.Tensor:
+    """(N,) bool: camera-frame points (N,3) inside a pinhole camera's widened field of view
+    (:func:`image_tangent_bounds`; points with z <= 0 are outside); all True for a fisheye."""
+    if camera.model != "pinhole":
+        return torch.ones(points_cam.shape[0], dtype=torch.bool, device=points_cam.device)
+    x_lo, x_hi, y_lo, y_hi = image_tangent_bounds(camera, margin)
+    z = points_cam[:, 2]
+    x, y = points_cam[:, 0], points_cam[:, 1]
+    return (z > 0) & (x >= x_lo * z) & (x <= x_hi * z) & (y >= y_lo * z) & (y <= y_hi * z)
+
+
 def _visible_index(gaussians: GaussianSet, camera: Camera, near: float) -> torch.Tensor:
     """Indices (M,) of Gaussians in front of ``camera`` that can reach ALPHA_MIN, front to back."""
     with torch.no_grad():
@@ -86,6 +118,7 @@ def _visible_index(gaussians: GaussianSet, camera: Camera, near: float) -> torch
         finite = torch.isfinite(gaussians.means).all(-1) & torch.isfinite(gaussians.scales).all(-1)
         finite &= torch.isfinite(gaussians.quats).all(-1) & (gaussians.quats.abs().sum(-1) > 0)
         keep = valid & (depth > near) & (gaussians.opacities >= ALPHA_MIN) & finite
+        keep &= in_field_of_view(points, camera)
         keep &= (gaussians.scales > 0).all(-1)
         index = torch.nonzero(keep).squeeze(1)
         order = torch.argsort(depth[index], stable=True)
