@@ -10,11 +10,13 @@ import numpy as np
 import pytest
 import torch
 
+from egorelight_cli.errors import EgorelightError
 from egorelight_cli.nn.colour_model import RootPolynomialColour
 from egorelight_cli.render import optical_flow as of
 from egorelight_cli.render.lighting import EnvmapPooling
 from egorelight_cli.render.lightstage import LightStage
-from egorelight_cli.stages.envmap_inverse import EgoView, InverseSettings, fit_colour_model, observe, part_l1, range_regulariser
+from egorelight_cli.stages.envmap_inverse import (EgoView, InverseSettings, fit_colour_model, observe, part_l1,
+                                                 range_regulariser, sync_matrix)
 from tiny_models import cli_exit_code as _main, tiny_geolift_uvmaps  # the CLI in-process, shared setup
 
 
@@ -46,6 +48,30 @@ def test_inverse_rendering_recovers_a_known_colour_model():
     assert lights < 0.06 and texels < 0.08, (lights, texels)
     assert float(fit.colour.gamma.detach()) == pytest.approx(1.5, abs=0.15)
     assert fit.curve[-1]["loss"] < 0.2 * fit.curve[0]["loss"]
+
+
+def test_colour_sync_gains_transfer_where_a_full_matrix_fitted_to_misaligned_pixels_does_not():
+    rng = np.random.default_rng(0)
+    true = np.diag([0.82, 0.85, 0.93])
+    # studio: body colours with correlated channels (skin, a pink shirt), the photograph's pixels misaligned
+    # against the render's (a pixel's partner is often another body pixel), plus sensor noise
+    base = rng.uniform(0.2, 0.8, (4000, 1))
+    render = np.clip(base * [1.0, 0.75, 0.9] + rng.normal(0, 0.08, (4000, 3)), 0, None)
+    partner = render[rng.permutation(4000)]
+    aligned = rng.random(4000) < 0.6
+    ego = np.where(aligned[:, None], render, partner) @ true.T + rng.normal(0, 0.01, (4000, 3))
+    diagonal, matrix = sync_matrix(render, ego, "diagonal"), sync_matrix(render, ego, "matrix")
+    assert np.allclose(diagonal, np.diag(np.diag(diagonal)))
+    assert np.abs(diagonal - true).max() < 0.5 * np.abs(matrix - true).max()
+    # the wild light is another colour: the diagonal model maps its grey nearer the truth
+    grey = np.ones(3)
+    assert np.abs(diagonal @ grey - true @ grey).max() < np.abs(matrix @ grey - true @ grey).max()
+    # on exact pairs the full matrix recovers a cross-talk matrix exactly
+    cross = np.array([[0.9, 0.05, 0.02], [0.03, 0.8, 0.06], [0.0, 0.04, 1.1]])
+    clean = rng.uniform(0, 1, (200, 3))
+    np.testing.assert_allclose(sync_matrix(clean, clean @ cross.T, "matrix"), cross, atol=1e-12)
+    with pytest.raises(EgorelightError, match="inverse.sync.model"):
+        sync_matrix(clean, clean, "affine")
 
 
 def test_part_l1_balances_parts_and_regulariser_bounds_the_range():
