@@ -191,7 +191,7 @@ def test_fisheye_renders_gaussians_beyond_90_degrees():
 def test_pinhole_culls_gaussians_far_outside_its_field_of_view():
     # the composite's front camera (k1 < 0, k2 > 0: the radial curve rises for ever, so x/z = 10 is
     # still "valid"): a small Gaussian 2 m away beside the camera, ~84 degrees off-axis, projected
-    # through the polynomial far past the lens became a splat over the whole image (issue 18)
+    # through the polynomial far past the lens became a splat over the whole image (composite)
     camera = _camera("pinhole", width=80, height=60, focal=40.0, dist=[-0.0507, 0.01455, 0.0, 0.0, 0.0])
     beside = _single([2.0, 0.0, 0.2], 0.02, opacity=0.9)
     x_lo, x_hi, y_lo, y_hi = image_tangent_bounds(camera)

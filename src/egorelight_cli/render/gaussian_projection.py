@@ -39,7 +39,7 @@ ALPHA_MIN = 1.0 / 255.0  # splats fainter than this at a pixel are skipped (3DGS
 ALPHA_MAX = 0.99  # a single splat never makes a pixel fully opaque (3DGS), so T stays > 0
 EPS2D = 0.3  # pixels^2 added to every 2D covariance (3DGS / gsplat default)
 NEAR_M = 0.01  # Gaussians closer to the camera centre than this are culled
-FOV_MARGIN = 0.3  # pinhole: centres beyond the image's x/z, y/z range widened by this share of its half-width are culled
+FOV_MARGIN = 0.3  # pinhole: centres beyond the image's x/z, y/z range widened by this share of it are culled
 _BOX_MARGIN = 1e-4
 
 

@@ -21,10 +21,9 @@ of the relightable avatar into the down-facing HMD cameras (paper Eqs. ``inv-ren
   (:func:`fit_colour_sync`): the avatar is rendered under the recorded light entry (flat) of
   studio frames of a sequence with ego images (``ego_train``) into the down cameras posed by the
   calibration, the ego images are aligned to the renders by the flow below, and ``M`` is the
-  least-squares solution ``ego ~ M render`` over unclipped pixels of the observed body (or a gain per channel,
-  ``inverse.sync.model``: :func:`sync_matrix`). The
-  simulator (and a real headset at fixed exposure) keeps each camera's response over sequences,
-  so the matrix transfers to the wild.
+  least-squares solution ``ego ~ M render`` over unclipped pixels of the observed body (or a gain
+  per channel, ``inverse.sync.model``: :func:`sync_matrix`). The simulator (and a real headset at
+  fixed exposure) keeps each camera's response over sequences, so the matrix transfers to the wild.
 * ``O^-1(I_ego)``: the linearised ego image (inverse sRGB) warped onto the render by optical flow
   from the render to the ego image (:mod:`egorelight_cli.render.optical_flow`: OpenCV DIS; RAFT
   only from a local weights path), estimated once from the render under the initial model. A view
