@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from egorelight_cli.geometry.equirect import yaw_rotation
-from egorelight_cli.nn.colour_inverse import invert_colour
+from egorelight_cli.nn.colour_inverse import CameraMapping, camera_mapping, diagonal_inverse, invert_colour
+from egorelight_cli.errors import EgorelightError
 from egorelight_cli.nn.colour_model import RootPolynomialColour
 from egorelight_cli.stages import composite as cp
 from tiny_models import cli_exit_code as _main, tiny_geolift_uvmaps  # the CLI in-process, shared setup
@@ -52,7 +53,7 @@ def test_avatar_colour_is_inverted_unpremultiplied_and_composited_in_linear_ligh
     E_h = model.apply_numpy(straight)
     alpha = np.array([[0.5, 0.0]], np.float32)
     premult = (E_h[None, None] * alpha[..., None]).astype(np.float32)
-    mapped, residual = cp.avatar_to_camera(premult, alpha, model)
+    mapped, residual = cp.avatar_to_camera(premult, alpha, CameraMapping("exact", model=model))
     np.testing.assert_allclose(mapped[0, 0], 0.5 * straight, rtol=1e-4)
     assert np.all(mapped[0, 1] == 0) and residual < 1e-4
     background = np.full((1, 2, 3), 128, np.uint8)
@@ -62,6 +63,67 @@ def test_avatar_colour_is_inverted_unpremultiplied_and_composited_in_linear_ligh
     expected = linear_to_srgb(0.5 * straight + 0.5 * srgb_to_linear(np.full(3, 128 / 255)))
     np.testing.assert_array_equal(out[0, 0], np.round(expected * 255).astype(np.uint8))
     np.testing.assert_array_equal(out[0, 1], background[0, 1])
+
+
+def test_diagonal_inverse_is_exact_for_channel_gains_and_leaves_an_albedo_as_it_is():
+    rng = np.random.default_rng(2)
+    sky = rng.uniform(0.05, 1.0, (16, 32, 3)) * np.array([0.7, 0.85, 1.0])  # a bluish panorama E_l
+    # a model that is a gain per channel: the diagonal inverse is its exact inverse
+    gains = RootPolynomialColour(np.concatenate([np.diag([1.6, 1.2, 0.8]), np.zeros((3, 3))], axis=1), 1.0)
+    g = diagonal_inverse(gains, gains.apply_numpy(sky))
+    np.testing.assert_allclose(g, 1.0 / np.array([1.6, 1.2, 0.8]), rtol=1e-5)
+    # with cross terms: the gains are the least-squares fit of E_l ~ g E_h over the map's texels
+    model = _model()
+    E_h = model.apply_numpy(sky).astype(np.float64)
+    g = diagonal_inverse(model, E_h)
+    E_l = invert_colour(model, E_h)[0].astype(np.float64).reshape(-1, 3)
+    for c in range(3):
+        best = np.linalg.lstsq(E_h.reshape(-1, 3)[:, c:c + 1], E_l[:, c], rcond=None)[0][0]
+        assert abs(g[c] - best) < 1e-6 * abs(best)
+    # an avatar colour = albedo x light: the diagonal mapping keeps the albedo, the exact inverse of the
+    # cross terms does not (on a saturated red albedo it moves the hue the light did not have)
+    albedo = np.array([0.6, 0.15, 0.1])
+    light = E_h.reshape(-1, 3).mean(axis=0)
+    diagonal = camera_mapping(model, E_h, "diagonal")
+    exact = camera_mapping(model, E_h, "exact")
+    lit = (albedo * light)[None]
+    np.testing.assert_allclose(diagonal.apply(lit)[0][0], albedo * diagonal.apply(light[None])[0][0], rtol=1e-5)
+    ratio_exact = exact.apply(lit)[0][0] / exact.apply(light[None])[0][0]
+    assert np.abs(ratio_exact / albedo - 1).max() > 0.1  # the exact inverse distorts the albedo by > 10 %
+    assert diagonal.to_json()["method"] == "linear" and exact.to_json()["method"] == "exact"
+    with pytest.raises(EgorelightError, match="colour.inverse must be one of"):
+        camera_mapping(model, E_h, "full")
+
+
+def test_composite_scores_pool_the_pixels_of_all_frames():
+    import torch
+
+    from egorelight_cli.render.image_metrics import psnr, ssim
+    from egorelight_cli.stages.composite_eval import frame_errors, pooled_scores
+
+    rng = np.random.default_rng(3)
+    truth = rng.integers(0, 256, (2, 40, 50, 3), dtype=np.uint8)
+    image = truth.copy()
+    big = np.zeros((40, 50), bool)
+    big[5:35, 5:45] = True  # 1200 pixels, 10 grey levels off
+    image[0][big] = np.clip(truth[0][big].astype(int) + 10, 0, 255)
+    small = np.zeros((40, 50), bool)
+    small[20:22, 20:22] = True  # 4 pixels, far off
+    image[1][small] = 255 - truth[1][small]
+    errors = [frame_errors(image[k], truth[k], m) for k, m in enumerate((big, small))]
+    # one frame alone: the plain masked PSNR / SSIM of image_metrics
+    a, b = (torch.from_numpy(x[0].astype(np.float64) / 255) for x in (image, truth))
+    one = pooled_scores(errors[:1])
+    assert abs(one["psnr"] - float(psnr(a, b, torch.from_numpy(big)))) < 1e-9
+    assert abs(one["ssim"] - 100 * float(ssim(a, b, torch.from_numpy(big)))) < 1e-9
+    # pooled: the squared error over all 1204 pixels, so the 4-pixel frame moves it by < 2 dB, where a
+    # mean of the two frames' PSNRs loses > 5 dB to it
+    both = pooled_scores(errors)
+    expected = 10 * np.log10(3 * 1204 / (errors[0][0] + errors[1][0]))
+    assert abs(both["psnr"] - expected) < 1e-9 and one["psnr"] - both["psnr"] < 2.0
+    per_frame_mean = np.mean([pooled_scores([e])["psnr"] for e in errors])
+    assert one["psnr"] - per_frame_mean > 5.0
+    assert pooled_scores([]) == {"psnr": None, "ssim": None}
 
 
 @pytest.mark.parametrize("yaw", [0.0, 35.0, -120.0])
@@ -100,8 +162,6 @@ def test_placement_puts_the_feet_on_the_floor_at_the_requested_spot(yaw):
 
 
 def test_place_option_and_settings_are_checked():
-    from egorelight_cli.errors import EgorelightError
-
     assert cp.parse_place("2, 0.5, -90") == (2.0, 0.5, -90.0)
     for bad in ("2,0", "a,b,c", "1,2,3,4", "nan,0,0", "500,0,0"):
         with pytest.raises(EgorelightError):
@@ -153,16 +213,20 @@ def test_composite_on_the_tiny_capture(tiny_capture, oracle_calibration_artifact
     assert manifest["timing"]["per_frame_s"] > 0 and manifest["runtime"]["device"] == "cpu"
     # scored against the oracle: the composite is closer to the truth than the flat studio light
     rows = m["rows"]
-    assert set(rows) == {"composite", "flat_studio", "ldr_panorama_only"} and m["scored_frames"] == 2
+    assert set(rows) == {"composite", "flat_studio", "ldr_panorama_only", "true_light"} and m["scored_frames"] == 2
     for row in rows.values():
         assert np.isfinite(row["psnr"]) and np.isfinite(row["ssim"])
     assert m["psnr"] == rows["composite"]["psnr"] > 12.0, rows
     assert m["mask_iou"] > 0.5
     # floor at y = 0 of the (oracle, metric) frame: the same spot within the eye-height estimate
     world = tmp_path / "world"
-    assert run(*args, "--set", "placement.floor=world", "--out", world, "-q").returncode == 0
+    assert run(*args, "--set", "placement.floor=world", "--set", "colour.inverse=exact", "--out", world,
+               "-q").returncode == 0
     moved = json.loads((world / "placement.json").read_text())
     assert moved["floor_y_m"] == 0.0 and abs(placement["floor_y_m"]) < 0.15
+    # the avatar's colour mapping: a gain per channel by default, the colour model's inverse on request
+    assert placement["colour_mapping"]["avatar_to_camera"]["method"] == "linear"
+    assert moved["colour_mapping"]["avatar_to_camera"]["method"] == "exact"
     # a virtual camera: the envmap's view (LDR, inverse colour model) as background
     camera = {"model": "pinhole", "K": [[150, 0, 100], [0, 150, 75], [0, 0, 1]], "width": 200, "height": 150,
               "T_cam_from_world": np.linalg.inv(np.asarray(placement["T_user2_from_studio"]) @ _look_at()).tolist()}
@@ -194,6 +258,7 @@ def test_bad_inputs_are_one_line_errors_with_nothing_written(tiny_capture, oracl
         (["--camera", "front_left", "--camera-json", tmp_path / "bad_camera.json"], "not both"),
         (["--set", "placement.floor=ceiling"], "placement.floor"),
         (["--set", "frames=0"], "frames"),
+        (["--set", "colour.inverse=full"], "colour.inverse"),
     ]
     for k, (extra, needle) in enumerate(cases):
         out = tmp_path / f"out{k}"

@@ -28,9 +28,21 @@ terms' derivatives in ``u`` blow up). Per pixel, 3 equations in 3 unknowns:
 Targets outside the model's range (a colour no non-negative ``E_l`` maps to, e.g. a negative
 channel) end at the nearest point Newton reaches from the start; :func:`invert_colour` reports
 the relative residual ``|f(u) - y| / |y|`` per pixel so callers can record it.
+
+**Mapping an avatar back** (:class:`CameraMapping`, ``composite``). The exact inverse is right for
+the light (each direction of ``E_h`` came from a panorama texel). For the avatar's colours it is
+right only if the fitted model were the camera's colour response; fitted by inverse rendering, its
+cross terms also absorb the avatar's and the synchronisation's errors, and on colours unlike the
+panorama's (an albedo times the light) their inverse extrapolates: on the cpu demo it saturated
+the avatar towards magenta. :func:`diagonal_inverse` is the robust alternative: one gain per
+channel, the least-squares fit of ``E_l ~ g E_h`` over the map's texels (``E_l`` the exact
+inverse of each texel). It is exact when the model is a gain per channel, and it commutes with
+an albedo, so an avatar relit by ``E_h`` and mapped back is the avatar relit by ``g E_h ~ E_l``.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -128,3 +140,59 @@ def invert_colour(model: RootPolynomialColour | tuple[np.ndarray, float], target
         u_out[live] = s * s * scale[live, None]
     x = np.power(np.maximum(u_out, 0.0), 1.0 / gamma)
     return x.reshape(target.shape).astype(np.float32), residual.reshape(target.shape[:-1]).astype(np.float32)
+
+
+#: ``composite`` colour.inverse: how the avatar's radiance goes back into the camera's space.
+INVERSE_METHODS = ("diagonal", "exact")
+
+
+def diagonal_inverse(model: RootPolynomialColour, envmap: np.ndarray, iterations: int = 20) -> np.ndarray:
+    """(3,) per-channel gains ``g`` with ``E_l ~ g E_h``: least squares over the texels of
+    ``envmap`` (...,3), the ``E_h`` map of ``model``, against their exact inverses (module docstring)."""
+    E_h = np.asarray(envmap, np.float64).reshape(-1, 3)
+    E_l = invert_colour(model, E_h, iterations)[0].astype(np.float64)
+    energy = (E_h * E_h).sum(axis=0)
+    if not (energy > 0).all():
+        raise EgorelightError("the environment map has a channel that is 0 everywhere: no gain to fit")
+    return (E_l * E_h).sum(axis=0) / energy
+
+
+@dataclass(frozen=True, eq=False)
+class CameraMapping:
+    """Avatar radiance in ``E_h`` units -> camera-linear ``E_l``, per pixel.
+
+    Attributes:
+        method: ``exact`` (the per-pixel inverse of ``model``) or ``linear`` (``E_l = matrix @ E_h``,
+            negative values clipped: a gain per channel, or a known camera's 3x3 response).
+        model: the colour model (``exact``).
+        matrix: (3,3) float64 (``linear``).
+        iterations: Newton steps of the ``exact`` inverse.
+    """
+
+    method: str
+    model: RootPolynomialColour | None = None
+    matrix: np.ndarray | None = None
+    iterations: int = 20
+
+    def apply(self, rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(``E_l`` (N,3) float32, relative residual (N,) float32; 0 for ``linear``) of (N,3) colours."""
+        if self.method == "exact":
+            return invert_colour(self.model, rgb, self.iterations)
+        mapped = np.maximum(np.asarray(rgb, np.float64) @ self.matrix.T, 0.0)
+        return mapped.astype(np.float32), np.zeros(mapped.shape[:-1], np.float32)
+
+    def to_json(self) -> dict:
+        if self.method == "exact":
+            return {"method": "exact", "inverse": "per-pixel Levenberg-Marquardt in log sqrt(E_l^gamma) from the "
+                    f"grey solution ({self.iterations} steps), nn/colour_inverse.py"}
+        return {"method": "linear", "matrix": self.matrix.tolist()}
+
+
+def camera_mapping(model: RootPolynomialColour, envmap: np.ndarray, method: str, iterations: int = 20) -> CameraMapping:
+    """The :class:`CameraMapping` of ``colour.inverse`` = ``method`` (:data:`INVERSE_METHODS`) for the
+    colour ``model`` of ``envmap`` (H,2H,3) ``E_h``."""
+    if method == "exact":
+        return CameraMapping("exact", model=model, iterations=iterations)
+    if method == "diagonal":
+        return CameraMapping("linear", matrix=np.diag(diagonal_inverse(model, envmap, iterations)))
+    raise EgorelightError(f"colour.inverse must be one of {', '.join(INVERSE_METHODS)}, got {method!r}")

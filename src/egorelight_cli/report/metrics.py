@@ -25,6 +25,7 @@ SPLITS = ("test_", "train_", "validation_", "val_", "olat_tail_", "group_tail_")
 BASELINE_PREFIXES = {
     "no_depth_": "no depth", "skinning_": "skinning only", "mean_pose_": "mean pose", "per_frame_": "network alone",
     "sgbm_": "SGBM stereo", "lambert_": "Lambert", "baked_": "baked texture", "diffuse_only_": "diffuse only",
+    "flat_studio_": "flat studio light", "ldr_panorama_only_": "LDR panorama only",
 }
 #: prefixes that mark our own value when its baselines carry another prefix of the same family
 VARIANT_PREFIXES = ("full_",)

@@ -25,11 +25,14 @@ the simulator). The later avatar frames keep the same ``T_place`` (the avatar wa
 **Colour** (:func:`avatar_to_camera`). The avatar renders radiance in the avatar's light units
 (the studio cameras' linear HDR; ``E_h`` units, the studio exposure being 1 by the capture
 convention). The envmap's colour model says which front-camera linear value ``E_l`` becomes
-``E_h = A phi(E_l ** gamma)``; the avatar's un-premultiplied colour is mapped back by its inverse
-(:func:`~egorelight_cli.nn.colour_inverse.invert_colour`: per pixel Newton from the grey solution),
-composited in linear light ``out = alpha x + (1 - alpha) srgb^-1(background)`` with the
-Gaussians' alpha, then sRGB-encoded and quantised to 8 bits (values above 1 clip as the camera
-clips).
+``E_h = A phi(E_l ** gamma)``; the avatar's un-premultiplied colour is mapped back into ``E_l``
+(:class:`~egorelight_cli.nn.colour_inverse.CameraMapping`, ``colour.inverse``): ``diagonal``
+(default) by one gain per channel fitted to the model's inverse over the envmap's texels, or
+``exact`` by the model's own per-pixel inverse (Newton from the grey solution), which the
+model's cross terms make extrapolate on the avatar's colours (``nn/colour_inverse.py``;
+measured in ``stages/composite.yaml``). It is composited in linear light
+``out = alpha x + (1 - alpha) srgb^-1(background)`` with the Gaussians' alpha, then sRGB-encoded
+and quantised to 8 bits (values above 1 clip as the camera clips).
 """
 
 from __future__ import annotations
@@ -44,7 +47,7 @@ from egorelight_cli.errors import EgorelightError
 from egorelight_cli.geometry.cameras import Camera
 from egorelight_cli.geometry.equirect import yaw_rotation
 from egorelight_cli.io.images import linear_to_srgb, srgb_to_linear, to_unit_float
-from egorelight_cli.nn.colour_inverse import invert_colour
+from egorelight_cli.nn.colour_inverse import CameraMapping
 from egorelight_cli.stages import relight as rl
 
 UP = np.array([0.0, 1.0, 0.0])
@@ -61,6 +64,7 @@ class CompositeSettings:
     floor: str
     eye_height_m: float | None
     colour_iterations: int
+    colour_inverse: str
     sheet_columns: int
     sheet_tile_width: int
 
@@ -69,6 +73,7 @@ class CompositeSettings:
         eye = cfg.placement.eye_height_m
         settings = cls(int(cfg.frames), float(cfg.resolution_scale), float(cfg.video.fps), str(cfg.placement.floor),
                        None if str(eye) == "auto" else float(eye), int(cfg.colour.iterations),
+                       str(cfg.colour.inverse),
                        int(cfg.preview.columns), int(cfg.preview.tile_width))
         return settings  # value ranges: the checks of stages/composite.yaml
 
@@ -182,20 +187,20 @@ def render_avatar(model: rl.RelightModel, data, frame_id: int, camera: Camera, i
     return render.colour.numpy().astype(np.float32), render.alpha.numpy().astype(np.float32)
 
 
-def avatar_to_camera(colour: np.ndarray, alpha: np.ndarray, colour_model, iterations: int = 20,
+def avatar_to_camera(colour: np.ndarray, alpha: np.ndarray, mapping: CameraMapping | None,
                      min_alpha: float = 1e-3) -> tuple[np.ndarray, float]:
     """(premultiplied camera-linear colour (H,W,3) float32, 99th-percentile relative residual of
-    the inversion) of a premultiplied avatar render: un-premultiply, invert the colour model
+    the mapping) of a premultiplied avatar render (H,W,3) with ``alpha`` (H,W): un-premultiply, map
     (``None``: identity), premultiply again. Pixels below ``min_alpha`` are 0."""
     out = np.zeros_like(colour, dtype=np.float32)
     covered = alpha > min_alpha
     if not covered.any():
         return out, 0.0
     straight = np.maximum(colour[covered] / alpha[covered, None], 0.0)
-    if colour_model is None:
+    if mapping is None:
         mapped, residual = straight, np.zeros(1)
     else:
-        mapped, residual = invert_colour(colour_model, straight, iterations)
+        mapped, residual = mapping.apply(straight)
     out[covered] = mapped * alpha[covered, None]
     return out, float(np.percentile(residual, 99))
 

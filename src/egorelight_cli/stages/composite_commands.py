@@ -12,7 +12,7 @@ A ``composite`` artifact directory holds
 * ``preview.png``: contact sheet (composites; with ground truth the truth composite and the
   baseline rows under them);
 * ``placement.json``: the placement (``T_user2_from_studio``, yaw, spot, floor and how it was
-  chosen), the camera, the colour mapping used (the envmap's ``A``, ``gamma``, the inversion), the
+  chosen), the camera, the colour mapping used (the envmap's ``A``, ``gamma``, the avatar's mapping), the
   frame pairs.
 """
 
@@ -86,6 +86,7 @@ class CompositeCommands:
 
     def predict(self, capture_path: Path, calibration_path: Path, envmap_path: Path, avatar: AvatarInputs, seq: str,
                 role: str | None, camera_json: Path | None, place: str, out: Path) -> Path:
+        from egorelight_cli.nn.colour_inverse import camera_mapping
         from egorelight_cli.nn.colour_model import RootPolynomialColour
         from egorelight_cli.render.envmaps import load_envmap
         from egorelight_cli.stages.character_commands import character_sources, load_character
@@ -151,7 +152,8 @@ class CompositeCommands:
                            settings, envmap, colour)
             lightstage = data.lightstage
             light = torch.from_numpy(lightstage.envmap_to_intensities(envmap, -placement.yaw_deg))
-            composites, residuals, masks = _render_row(model, data, views, light, colour, settings)
+            mapping = camera_mapping(colour, envmap, settings.colour_inverse, settings.colour_iterations)
+            composites, residuals, masks = _render_row(model, data, views, light, mapping)
             writer.timing["composite_s"] = round(time.perf_counter() - started, 3)
             writer.timing["per_frame_s"] = round(writer.timing["composite_s"] / len(views), 3)
             for view, image in zip(views, composites):
@@ -161,9 +163,9 @@ class CompositeCommands:
             from egorelight_cli.stages import composite_eval as ce
 
             evaluation = ce.evaluate(capture, calibration, seq, front, avatar.sequence, placement, views, composites, masks,
-                                     lambda light_row, colour_row: _render_row(model, data, views, light_row,
-                                                                               colour_row, settings)[0],
-                                     envmap, colour, lightstage, light, settings.colour_iterations)
+                                     lambda light_row, mapping_row: _render_row(model, data, views, light_row,
+                                                                                mapping_row)[0],
+                                     envmap, colour, mapping, lightstage, light, settings.colour_iterations)
             if evaluation is not None:
                 writer.metrics.update(evaluation.metrics)
                 sheet += evaluation.sheet_rows
@@ -179,8 +181,7 @@ class CompositeCommands:
                 **placement.to_json(), "place": {"forward_m": forward_m, "right_m": right_m, "yaw_deg": yaw_deg},
                 "eye_height_m": eye, "camera": views[0].camera.to_dict() if virtual is not None else front,
                 "frames": [{"user2": v.user2_frame, "avatar": v.avatar_frame} for v in views],
-                "colour_mapping": {**colour.to_json(), "inverse": "per-pixel Levenberg-Marquardt in log sqrt(E_l^gamma) from the grey solution "
-                                   f"({settings.colour_iterations} steps), nn/colour_inverse.py",
+                "colour_mapping": {**colour.to_json(), "avatar_to_camera": mapping.to_json(),
                                    "max_residual_p99": max(residuals)},
                 "frame": f"the calibrated head poses of sequence {seq} (User 2)"})
             writer.metrics.update({
@@ -193,8 +194,9 @@ class CompositeCommands:
             writer.extra["floor"] = (f"head: floor = User 2's first head height minus the eye height {eye:.3f} m "
                                      "(auto: median HMD height of the calibration's studio sequences)"
                                      if settings.floor == "head" else "world: y = 0 of the calibration's frame")
-            writer.extra["colour"] = ("avatar HDR (E_h units) -> inverse of the envmap colour model -> camera-linear "
-                                      "-> alpha-composited in linear light over the sRGB-decoded background -> sRGB")
+            writer.extra["colour"] = (f"avatar HDR (E_h units) -> camera-linear by the {settings.colour_inverse} inverse "
+                                      "of the envmap colour model (colour.inverse) -> alpha-composited in linear light "
+                                      "over the sRGB-decoded background -> sRGB")
             writer.units.update({"psnr": "dB on 8-bit sRGB composites in the avatar mask (render or truth alpha "
                                          "> 0.5)", "ssim": "x100", "floor_y_m": "m", "placement_yaw_deg": "deg"})
 
@@ -266,13 +268,14 @@ def _views(capture, calibration, sequence, role: str, virtual: Camera | None, us
     return views
 
 
-def _render_row(model, data, views: list[View], light: torch.Tensor, colour, settings: cp.CompositeSettings):
-    """(composites (H,W,3) uint8, p99 inversion residuals, avatar masks (H,W) alpha > 0.5), one per view, of the avatar under ``light`` (L,3) mapped by the inverse of ``colour`` (None:
-    identity)."""
+def _render_row(model, data, views: list[View], light: torch.Tensor, mapping):
+    """(composites (H,W,3) uint8, p99 mapping residuals, avatar masks (H,W) alpha > 0.5), one per
+    view, of the avatar under ``light`` (L,3) mapped into the camera by ``mapping``
+    (:class:`~egorelight_cli.nn.colour_inverse.CameraMapping`; None: identity)."""
     out, residuals, masks = [], [], []
     for view in console.progress(views, total=len(views), desc="composite"):
         render, alpha = cp.render_avatar(model, data, view.avatar_frame, view.studio_camera, light)
-        avatar, residual = cp.avatar_to_camera(render, alpha, colour, settings.colour_iterations)
+        avatar, residual = cp.avatar_to_camera(render, alpha, mapping)
         out.append(cp.composite_image(view.background, avatar, alpha))
         residuals.append(residual)
         masks.append(alpha > 0.5)

@@ -11,16 +11,22 @@ through the TRUE response of the background camera (``groundtruth/ego_response.j
 colour matrix, clipping, sRGB, 8 bits; no noise) and replaces the background where the oracle's
 mask is set.
 
-**Metrics** per row, mean over the frames where the avatar or the truth covers pixels: PSNR and
-SSIM (x100) of the 8-bit composites (in [0,1]) over the avatar mask = the render's alpha > 0.5
-or the truth's mask (:mod:`egorelight_cli.render.image_metrics`), and the masks' IoU. Rows:
+**Metrics** per row: PSNR and SSIM (x100) of the 8-bit composites (in [0,1]) over the avatar mask =
+the render's alpha > 0.5 or the truth's mask (:mod:`egorelight_cli.render.image_metrics`), pooled
+over the masked pixels of every frame where the avatar or the truth covers pixels (PSNR of the
+pooled squared error, SSIM the mean of its map over all masked pixels: a frame where the avatar
+only enters the image with a few pixels weighs by those pixels, not as much as a whole body), and
+the masks' IoU (mean over those frames). Rows:
 
-* ``composite``: the stage's output (light ``S(E_h)``, inverse colour model);
+* ``composite``: the stage's output (light ``S(E_h)``, the avatar mapped by ``colour.inverse``);
 * ``flat_studio``: the avatar under the light stage's flat light at the same mean luminance as
   ``S(E_h)`` (no direction, no colour of the room), same colour mapping;
 * ``ldr_panorama_only`` (when the envmap's colour model is not the identity): the light of the
   LDR panorama itself, ``E_l`` = the inverse colour model applied to ``E_h``, and no colour
-  mapping (the paper's "no inverse rendering" ablation carried to the composite).
+  mapping (the paper's "no inverse rendering" ablation carried to the composite);
+* ``true_light`` (an oracle, not a baseline): the avatar under the TRUE light through the TRUE
+  response of the camera (exposure and colour matrix): what a perfect ``envmap`` would give this
+  avatar, so the gap between it and the truth is the avatar's own (geometry, appearance).
 """
 
 from __future__ import annotations
@@ -36,7 +42,7 @@ import torch
 from egorelight_cli import console
 from egorelight_cli.stages.envmap_eval import LUMINANCE
 
-ROWS = ("composite", "flat_studio", "ldr_panorama_only")
+ROWS = ("composite", "flat_studio", "ldr_panorama_only", "true_light")
 
 
 @dataclass
@@ -48,15 +54,26 @@ class Evaluation:
     seconds: float = 0.0
 
 
-def score(image: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> dict:
-    """PSNR (dB) and SSIM (x100) of uint8 images (H,W,3) over ``mask`` (H,W)."""
-    from egorelight_cli.render.image_metrics import psnr, ssim
+def frame_errors(image: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """(4,) float64 [sum of squared errors, values, sum of SSIM, SSIM pixels] of uint8 images
+    (H,W,3) in [0,1] over ``mask`` (H,W) (SSIM: the masked pixels inside its cropped border)."""
+    from egorelight_cli.render.image_metrics import SSIM_RADIUS, ssim_map
 
-    a = torch.from_numpy(image.astype(np.float32) / 255.0)
-    b = torch.from_numpy(truth.astype(np.float32) / 255.0)
+    a = torch.from_numpy(image.astype(np.float64) / 255.0)
+    b = torch.from_numpy(truth.astype(np.float64) / 255.0)
     m = torch.from_numpy(mask)
-    value = float(ssim(a, b, m))
-    return {"psnr": float(psnr(a, b, m)), "ssim": 100.0 * value if np.isfinite(value) else None}
+    inner = m[SSIM_RADIUS:-SSIM_RADIUS, SSIM_RADIUS:-SSIM_RADIUS]
+    similarity = ssim_map(a, b)[inner]
+    return np.array([float(((a - b) ** 2)[m].sum()), 3.0 * float(m.sum()), float(similarity.sum()), float(inner.sum())])
+
+
+def pooled_scores(errors: list[np.ndarray]) -> dict:
+    """``{"psnr": dB, "ssim": x100}`` of :func:`frame_errors` rows pooled over their pixels (None
+    where nothing was scored)."""
+    total = np.sum(errors, axis=0) if errors else np.zeros(4)
+    psnr = 10.0 * np.log10(total[1] / max(total[0], 1e-20)) if total[1] > 0 else None
+    return {"psnr": None if psnr is None else float(psnr),
+            "ssim": 100.0 * float(total[2] / total[3]) if total[3] > 0 else None}
 
 
 def flat_light(lightstage, reference: np.ndarray) -> np.ndarray:
@@ -67,12 +84,13 @@ def flat_light(lightstage, reference: np.ndarray) -> np.ndarray:
 
 
 def evaluate(capture, calibration, seq: str, role: str, avatar_sequence: str, placement, views, composites, alphas,
-             render_row: Callable, envmap: np.ndarray, colour, lightstage, light: torch.Tensor,
+             render_row: Callable, envmap: np.ndarray, colour, mapping, lightstage, light: torch.Tensor,
              iterations: int = 20) -> Evaluation | None:
     """The module docstring's scores, or None without ground truth. ``alphas``: the avatar's
-    masks (H,W) per view (alpha > 0.5); ``render_row(light (L,3),
-    colour model or None) -> composites`` renders a baseline row over the same views."""
-    from egorelight_cli.nn.colour_inverse import invert_colour
+    masks (H,W) per view (alpha > 0.5); ``colour`` the envmap's colour model, ``mapping`` the
+    composite's :class:`~egorelight_cli.nn.colour_inverse.CameraMapping`; ``render_row(light (L,3),
+    mapping or None) -> composites`` renders a row over the same views."""
+    from egorelight_cli.nn.colour_inverse import CameraMapping, invert_colour
     from egorelight_cli.nn.colour_model import identity_matrix
     from egorelight_cli.render.camera_response import CameraResponse
     from egorelight_cli.stages.envmap_eval import wild_truth
@@ -98,13 +116,15 @@ def evaluate(capture, calibration, seq: str, role: str, avatar_sequence: str, pl
         truths.append(np.where(render.mask[..., None], ldr, view.background))
         masks.append(render.mask)
     rows = {"composite": composites}
-    rows["flat_studio"] = render_row(torch.from_numpy(flat_light(lightstage, light.numpy())), colour)
+    rows["flat_studio"] = render_row(torch.from_numpy(flat_light(lightstage, light.numpy())), mapping)
     identity = np.allclose(colour.A.detach().numpy(), identity_matrix()) and abs(float(colour.gamma) - 1) < 1e-9
     if not identity:
         E_l, _ = invert_colour(colour, envmap, iterations)
         rows["ldr_panorama_only"] = render_row(
             torch.from_numpy(lightstage.envmap_to_intensities(E_l, -placement.yaw_deg)), None)
-    scores = {name: [] for name in rows}
+    rows["true_light"] = render_row(torch.from_numpy(lightstage.envmap_to_intensities(truth.envmap, -placement.yaw_deg)),
+                                    CameraMapping("linear", matrix=response.exposure * response.colour_matrix))
+    errors = {name: [] for name in rows}
     ious = []
     for k, (truth_image, truth_mask) in enumerate(zip(truths, masks)):
         avatar_mask = alphas[k]
@@ -113,20 +133,17 @@ def evaluate(capture, calibration, seq: str, role: str, avatar_sequence: str, pl
             continue
         ious.append(float((truth_mask & avatar_mask).sum() / mask.sum()))
         for name, images in rows.items():
-            scores[name].append(score(images[k], truth_image, mask))
+            errors[name].append(frame_errors(images[k], truth_image, mask))
     metrics = {"truth_envmap": truth.name, "truth_frame_yaw_deg": truth.frame_yaw_deg, "scored_frames": len(ious),
                "mask_iou": float(np.mean(ious)) if ious else None,
                "colour_model_identity": bool(identity)}
-    table = {}
-    for name, values in scores.items():
-        ssims = [v["ssim"] for v in values if v["ssim"] is not None]
-        table[name] = {"psnr": float(np.mean([v["psnr"] for v in values])) if values else None,
-                       "ssim": float(np.mean(ssims)) if ssims else None}
+    table = {name: pooled_scores(values) for name, values in errors.items()}
     metrics["rows"] = table
     metrics["psnr"], metrics["ssim"] = table["composite"]["psnr"], table["composite"]["ssim"]
     for name in rows:
         if name != "composite":
             metrics[f"{name}_psnr"], metrics[f"{name}_ssim"] = table[name]["psnr"], table[name]["ssim"]
     sheet = [("truth: true subject, true wild light, true camera response", truths)]
-    sheet += [(f"baseline {name}", images) for name, images in rows.items() if name != "composite"]
+    sheet += [(f"{'oracle' if name == 'true_light' else 'baseline'} {name}", images)
+              for name, images in rows.items() if name != "composite"]
     return Evaluation(metrics, sheet, time.perf_counter() - started)
