@@ -107,6 +107,10 @@ class CompositeCommands:
             raise EgorelightError("an envmap artifact is a directory", envmap_path)
         colour = RootPolynomialColour.from_json(envmap_artifact.root / "colour_model.json")
         envmap = load_envmap(envmap_artifact.root / "envmap.exr")
+        try:
+            mapping = camera_mapping(colour, envmap, settings.colour_inverse, settings.colour_iterations)
+        except EgorelightError as exc:
+            raise EgorelightError(exc.message, envmap_artifact.root / "envmap.exr") from None
         sequence, avatar_sequence = capture.sequence(seq), capture.sequence(avatar.sequence)
         character, character_artifact = load_character(avatar.character)
         model, net, model_artifact = load_relight_model(avatar.model)
@@ -152,7 +156,6 @@ class CompositeCommands:
                            settings, envmap, colour)
             lightstage = data.lightstage
             light = torch.from_numpy(lightstage.envmap_to_intensities(envmap, -placement.yaw_deg))
-            mapping = camera_mapping(colour, envmap, settings.colour_inverse, settings.colour_iterations)
             composites, residuals, masks = _render_row(model, data, views, light, mapping)
             writer.timing["composite_s"] = round(time.perf_counter() - started, 3)
             writer.timing["per_frame_s"] = round(writer.timing["composite_s"] / len(views), 3)
