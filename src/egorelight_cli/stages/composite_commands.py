@@ -9,11 +9,11 @@ A ``composite`` artifact directory holds
   camera: per avatar frame);
 * ``composite.mp4``: the frames at ``video.fps`` when imageio-ffmpeg is installed (else the
   manifest says it was skipped);
-* ``preview.png``: contact sheet (composites; with ground truth the truth composite and the
-  baseline rows under them);
+* ``preview.png``: contact sheet (composites; with ground truth the truth composite, the
+  baseline rows and the ``true_light`` oracle row under them);
 * ``placement.json``: the placement (``T_user2_from_studio``, yaw, spot, floor and how it was
-  chosen), the camera, the colour mapping used (the envmap's ``A``, ``gamma``, the avatar's mapping), the
-  frame pairs.
+  chosen), the camera, the colour mapping used (the envmap's ``A``, ``gamma``, the avatar's
+  mapping), the frame pairs.
 """
 
 from __future__ import annotations
@@ -197,11 +197,12 @@ class CompositeCommands:
             writer.extra["floor"] = (f"head: floor = User 2's first head height minus the eye height {eye:.3f} m "
                                      "(auto: median HMD height of the calibration's studio sequences)"
                                      if settings.floor == "head" else "world: y = 0 of the calibration's frame")
-            writer.extra["colour"] = (f"avatar HDR (E_h units) -> camera-linear by the {settings.colour_inverse} inverse "
-                                      "of the envmap colour model (colour.inverse) -> alpha-composited in linear light "
-                                      "over the sRGB-decoded background -> sRGB")
+            writer.extra["colour"] = (f"avatar HDR (E_h units) -> camera-linear by the {settings.colour_inverse} "
+                                      "inverse of the envmap colour model (colour.inverse) -> alpha-composited in "
+                                      "linear light over the sRGB-decoded background -> sRGB")
             writer.units.update({"psnr": "dB on 8-bit sRGB composites in the avatar mask (render or truth alpha "
-                                         "> 0.5)", "ssim": "x100", "floor_y_m": "m", "placement_yaw_deg": "deg"})
+                                         "> 0.5), pooled over the pixels of the scored frames", "ssim": "x100",
+                                "floor_y_m": "m", "placement_yaw_deg": "deg"})
 
         return self.run.produce(out, "composite", write, inputs=inputs, source_files=sources, options=options)
 

@@ -122,8 +122,8 @@ def evaluate(capture, calibration, seq: str, role: str, avatar_sequence: str, pl
         E_l, _ = invert_colour(colour, envmap, iterations)
         rows["ldr_panorama_only"] = render_row(
             torch.from_numpy(lightstage.envmap_to_intensities(E_l, -placement.yaw_deg)), None)
-    rows["true_light"] = render_row(torch.from_numpy(lightstage.envmap_to_intensities(truth.envmap, -placement.yaw_deg)),
-                                    CameraMapping("linear", matrix=response.exposure * response.colour_matrix))
+    true_light = torch.from_numpy(lightstage.envmap_to_intensities(truth.envmap, -placement.yaw_deg))
+    rows["true_light"] = render_row(true_light, CameraMapping("linear", matrix=response.exposure * response.colour_matrix))
     errors = {name: [] for name in rows}
     ious = []
     for k, (truth_image, truth_mask) in enumerate(zip(truths, masks)):
