@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from egorelight_cli.geometry.equirect import yaw_rotation
-from egorelight_cli.nn.colour_inverse import CameraMapping, camera_mapping, diagonal_inverse, invert_colour
 from egorelight_cli.errors import EgorelightError
+from egorelight_cli.nn.colour_inverse import CameraMapping, camera_mapping, diagonal_inverse, invert_colour
 from egorelight_cli.nn.colour_model import RootPolynomialColour
 from egorelight_cli.stages import composite as cp
 from tiny_models import cli_exit_code as _main, tiny_geolift_uvmaps  # the CLI in-process, shared setup
@@ -211,7 +211,7 @@ def test_composite_on_the_tiny_capture(tiny_capture, oracle_calibration_artifact
     placement = json.loads((out / "placement.json").read_text())
     assert placement["floor"] == "head" and np.asarray(placement["T_user2_from_studio"]).shape == (4, 4)
     assert manifest["timing"]["per_frame_s"] > 0 and manifest["runtime"]["device"] == "cpu"
-    # scored against the oracle: the composite is closer to the truth than the flat studio light
+    # scored against the oracle: every row (the baselines, the true-light oracle) is scored
     rows = m["rows"]
     assert set(rows) == {"composite", "flat_studio", "ldr_panorama_only", "true_light"} and m["scored_frames"] == 2
     for row in rows.values():
