@@ -252,6 +252,8 @@ egodepth-curve: $(foreach n,$(EGODEPTH_CURVE_FRAMES),$(SUBJECT)/curves/egodepth/
 # test to 0.624 at best against skinning's 0.631 (its constant part alone: 0.660), and stepping
 # each skinned vertex to the ego point cloud along its normal takes the ego-visible surface
 # 0.573 -> 0.555 on the posed frames.
+# Issue 21's twenty-third session: motion_surface given twice (oversampled) reaches 0.638 under the
+# simulator's DoFs, but the estimated motion gets worse (2.61 vs 2.56).
 # ANIMATE_TRAIN_MOTIONS="motion" is the estimated motion alone; "motion_mocap" the mocap alone.
 # The depth-agnostic student is fine-tuned with xi = 0 on the flat-lit frames of ANIMATE_STUDENT_SEQ
 # (for the appearance stages) under ANIMATE_STUDENT_MOTIONS. Since issue 21's twenty-first session
