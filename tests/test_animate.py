@@ -138,7 +138,7 @@ def test_trained_under_a_motion_that_is_off_the_depth_corrects_held_out_frames(a
     motions = [_motion_off_by(gt / "ego_train" / "motion.npz", root / f"ego_train_off_{i}.npz", 0.02, i)
                for i in range(4)]
     model = root / "model_off"
-    code = _run("--preset", "tiny", "-q", "--set", "train.steps=600", "train", "animate", "--capture",
+    code = _run("--preset", "tiny", "-q", "--set", "train.steps=400", "train", "animate", "--capture",
                 animate_inputs["capture"], *[a for m in motions for a in ("--motion", m)], "--pointcloud",
                 root / "ego_train_cloud.npz", "--out", model)
     assert code == 0
@@ -152,8 +152,9 @@ def test_trained_under_a_motion_that_is_off_the_depth_corrects_held_out_frames(a
                 "--model", model, "--capture", animate_inputs["capture"], "--out", out)
     assert code == 0
     m = _metrics(out)
-    # measured full / no depth / skinning: 1.67 / 1.97 / 3.14 cm (full body), 2.42 / 2.75 / 3.57 (ego-visible);
-    # without the node skip the ego-visible pair was 2.71 / 2.73
+    # measured full / no depth / skinning at 400 steps: 1.74 / 2.02 / 3.14 cm (full body), 2.52 / 2.84 / 3.57
+    # (ego-visible); 600 steps: 1.67 / 1.97 / 3.14 and 2.42 / 2.75 / 3.57 for 1.5x the time (CI budget); without
+    # the node skip the ego-visible pair was 2.71 / 2.73
     for region in ("", "ego_visible_"):
         full, blind, skinning = (m[f"{v}_p2s_{region}pred_to_true_cm"] for v in ("full", "no_depth", "skinning"))
         assert full < 0.97 * blind and blind < 0.9 * skinning, (region, full, blind, skinning)
