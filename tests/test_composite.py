@@ -80,8 +80,8 @@ def test_diagonal_inverse_is_exact_for_channel_gains_and_leaves_an_albedo_as_it_
     for c in range(3):
         best = np.linalg.lstsq(E_h.reshape(-1, 3)[:, c:c + 1], E_l[:, c], rcond=None)[0][0]
         assert abs(g[c] - best) < 1e-6 * abs(best)
-    # an avatar colour = albedo x light: the diagonal mapping keeps the albedo, the exact inverse of the
-    # cross terms does not (on a saturated red albedo it moves the hue the light did not have)
+    # an avatar colour = albedo x light: a gain per channel (any) keeps the albedo's ratios, the exact
+    # inverse of the cross terms does not (on a saturated red albedo it moves the hue the light did not have)
     albedo = np.array([0.6, 0.15, 0.1])
     light = E_h.reshape(-1, 3).mean(axis=0)
     diagonal = camera_mapping(model, E_h, "diagonal")
@@ -93,6 +93,22 @@ def test_diagonal_inverse_is_exact_for_channel_gains_and_leaves_an_albedo_as_it_
     assert diagonal.to_json()["method"] == "linear" and exact.to_json()["method"] == "exact"
     with pytest.raises(EgorelightError, match="colour.inverse must be one of"):
         camera_mapping(model, E_h, "full")
+
+
+def test_a_linear_camera_mapping_is_the_simulated_camera_response():
+    from egorelight_cli.render.camera_response import CameraResponse
+
+    # a non-symmetric colour matrix: the orientation matters
+    response = CameraResponse(exposure=0.7, colour_matrix=[[0.9, 0.2, 0.0], [0.05, 1.0, 0.1], [-0.1, 0.0, 1.1]])
+    radiance = np.random.default_rng(4).uniform(0.0, 1.5, (50, 3))
+    mapping = CameraMapping("linear", matrix=response.exposure * response.colour_matrix)
+    mapped, residual = mapping.apply(radiance)
+    np.testing.assert_allclose(mapped, np.maximum(response.sensor(radiance), 0.0), rtol=1e-5, atol=1e-6)
+    assert not residual.any()
+    for bad, needle in ((dict(method="linear"), "3x3 matrix"), (dict(method="exact"), "colour model"),
+                        (dict(method="cubic", matrix=np.eye(3)), "exact or linear")):
+        with pytest.raises(EgorelightError, match=needle):
+            CameraMapping(**bad)
 
 
 def test_composite_scores_pool_the_pixels_of_all_frames():

@@ -174,6 +174,15 @@ class CameraMapping:
     matrix: np.ndarray | None = None
     iterations: int = 20
 
+    def __post_init__(self) -> None:
+        if self.method == "exact" and not isinstance(self.model, RootPolynomialColour):
+            raise EgorelightError("an exact camera mapping needs the colour model")
+        if self.method == "linear" and (self.matrix is None or np.shape(self.matrix) != (3, 3)
+                                        or not np.isfinite(self.matrix).all()):
+            raise EgorelightError(f"a linear camera mapping needs a finite 3x3 matrix, got {np.shape(self.matrix)}")
+        if self.method not in ("exact", "linear"):
+            raise EgorelightError(f"camera mapping method must be exact or linear, got {self.method!r}")
+
     def apply(self, rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(``E_l`` (N,3) float32, relative residual (N,) float32; 0 for ``linear``) of (N,3) colours."""
         if self.method == "exact":

@@ -202,7 +202,9 @@ class CompositeCommands:
                                       "linear light over the sRGB-decoded background -> sRGB")
             writer.units.update({"psnr": "dB on 8-bit sRGB composites in the avatar mask (render or truth alpha "
                                          "> 0.5), pooled over the pixels of the scored frames", "ssim": "x100",
-                                "floor_y_m": "m", "placement_yaw_deg": "deg"})
+                                "floor_y_m": "m", "placement_yaw_deg": "deg",
+                                "colour_inverse_residual_p99": "|f(E_l) - E_h| / |E_h| of the exact inverse; 0 for a "
+                                                               "linear mapping (colour.inverse=diagonal)"})
 
         return self.run.produce(out, "composite", write, inputs=inputs, source_files=sources, options=options)
 

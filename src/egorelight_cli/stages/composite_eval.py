@@ -25,7 +25,7 @@ the masks' IoU (mean over those frames). Rows:
   LDR panorama itself, ``E_l`` = the inverse colour model applied to ``E_h``, and no colour
   mapping (the paper's "no inverse rendering" ablation carried to the composite);
 * ``true_light`` (an oracle, not a baseline): the avatar under the TRUE light through the TRUE
-  response of the camera (exposure and colour matrix): what a perfect ``envmap`` would give this
+  response of the camera (exposure and colour matrix, over the studio exposure): what a perfect ``envmap`` would give this
   avatar, so the gap between it and the truth is the avatar's own (geometry, appearance).
 """
 
@@ -71,7 +71,7 @@ def pooled_scores(errors: list[np.ndarray]) -> dict:
     """``{"psnr": dB, "ssim": x100}`` of :func:`frame_errors` rows pooled over their pixels (None
     where nothing was scored)."""
     total = np.sum(errors, axis=0) if errors else np.zeros(4)
-    psnr = 10.0 * np.log10(total[1] / max(total[0], 1e-20)) if total[1] > 0 else None
+    psnr = -10.0 * np.log10(max(total[0] / total[1], 1e-20)) if total[1] > 0 else None
     return {"psnr": None if psnr is None else float(psnr),
             "ssim": 100.0 * float(total[2] / total[3]) if total[3] > 0 else None}
 
@@ -123,7 +123,9 @@ def evaluate(capture, calibration, seq: str, role: str, avatar_sequence: str, pl
         rows["ldr_panorama_only"] = render_row(
             torch.from_numpy(lightstage.envmap_to_intensities(E_l, -placement.yaw_deg)), None)
     true_light = torch.from_numpy(lightstage.envmap_to_intensities(truth.envmap, -placement.yaw_deg))
-    rows["true_light"] = render_row(true_light, CameraMapping("linear", matrix=response.exposure * response.colour_matrix))
+    # the avatar renders studio HDR (radiance x the studio exposure), the truth scene radiance
+    camera = response.exposure * response.colour_matrix / oracle.exposure
+    rows["true_light"] = render_row(true_light, CameraMapping("linear", matrix=camera))
     errors = {name: [] for name in rows}
     ious = []
     for k, (truth_image, truth_mask) in enumerate(zip(truths, masks)):
