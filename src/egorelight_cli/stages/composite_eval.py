@@ -25,8 +25,9 @@ the masks' IoU (mean over those frames). Rows:
   LDR panorama itself, ``E_l`` = the inverse colour model applied to ``E_h``, and no colour
   mapping (the paper's "no inverse rendering" ablation carried to the composite);
 * ``true_light`` (an oracle, not a baseline): the avatar under the TRUE light through the TRUE
-  response of the camera (exposure and colour matrix, over the studio exposure): what a perfect ``envmap`` would give this
-  avatar, so the gap between it and the truth is the avatar's own (geometry, appearance).
+  response of the camera (exposure and colour matrix, over the studio exposure): what a perfect
+  ``envmap`` would give this avatar, so the gap between it and the truth is the avatar's own
+  (geometry, appearance).
 """
 
 from __future__ import annotations
