@@ -47,7 +47,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from egorelight_cli.errors import EgorelightError
-from egorelight_cli.nn.colour_model import RootPolynomialColour
+from egorelight_cli.nn.colour_model import RootPolynomialColour, channel_gains
 
 #: (6,3) ``phi(u) ~ M u`` near grey (exact for grey): the root terms' arithmetic-mean linearisation.
 GREY_LINEARISATION = np.array([[1, 0, 0], [0, 1, 0], [0, 0, 1], [0.5, 0.5, 0], [0, 0.5, 0.5], [0.5, 0, 0.5]])
@@ -150,11 +150,9 @@ def diagonal_inverse(model: RootPolynomialColour, envmap: np.ndarray, iterations
     """(3,) per-channel gains ``g`` with ``E_l ~ g E_h``: least squares over the texels of
     ``envmap`` (...,3), the ``E_h`` map of ``model``, against their exact inverses (module docstring)."""
     E_h = np.asarray(envmap, np.float64).reshape(-1, 3)
-    E_l = invert_colour(model, E_h, iterations)[0].astype(np.float64)
-    energy = (E_h * E_h).sum(axis=0)
-    if not (energy > 0).all():
+    if not ((E_h * E_h).sum(axis=0) > 0).all():
         raise EgorelightError("the environment map has a channel that is 0 everywhere: no gain to fit")
-    return (E_l * E_h).sum(axis=0) / energy
+    return channel_gains(E_h, invert_colour(model, E_h, iterations)[0])
 
 
 @dataclass(frozen=True, eq=False)
@@ -175,13 +173,13 @@ class CameraMapping:
     iterations: int = 20
 
     def __post_init__(self) -> None:
+        if self.method not in ("exact", "linear"):
+            raise EgorelightError(f"camera mapping method must be exact or linear, got {self.method!r}")
         if self.method == "exact" and not isinstance(self.model, RootPolynomialColour):
             raise EgorelightError("an exact camera mapping needs the colour model")
         if self.method == "linear" and (self.matrix is None or np.shape(self.matrix) != (3, 3)
                                         or not np.isfinite(self.matrix).all()):
             raise EgorelightError(f"a linear camera mapping needs a finite 3x3 matrix, got {np.shape(self.matrix)}")
-        if self.method not in ("exact", "linear"):
-            raise EgorelightError(f"camera mapping method must be exact or linear, got {self.method!r}")
 
     def apply(self, rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(``E_l`` (N,3) float32, relative residual (N,) float32; 0 for ``linear``) of (N,3) colours."""

@@ -60,10 +60,17 @@ def ssim_map(a: torch.Tensor, b: torch.Tensor, data_range: float = 1.0) -> torch
     return s.mean(dim=0)
 
 
+def masked_ssim_sum(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor,
+                    data_range: float = 1.0) -> tuple[torch.Tensor, int]:
+    """(sum of the SSIM map over the ``mask`` (H,W) pixels inside the cropped border, their count) of
+    images (H,W,C): what :func:`ssim` averages, for pooling over several images."""
+    inner = mask[SSIM_RADIUS:-SSIM_RADIUS, SSIM_RADIUS:-SSIM_RADIUS]
+    return ssim_map(a, b, data_range)[inner].sum(), int(inner.sum())
+
+
 def ssim(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor | None = None, data_range: float = 1.0) -> torch.Tensor:
     """Mean SSIM of images (H,W,C); with ``mask`` (H,W) the mean over masked pixels (inside the crop)."""
-    s = ssim_map(a, b, data_range)
     if mask is None:
-        return s.mean()
-    inner = mask[SSIM_RADIUS:-SSIM_RADIUS, SSIM_RADIUS:-SSIM_RADIUS]
-    return s[inner].mean() if bool(inner.any()) else torch.tensor(math.nan, dtype=s.dtype)
+        return ssim_map(a, b, data_range).mean()
+    total, count = masked_ssim_sum(a, b, mask, data_range)
+    return total / count if count else torch.tensor(math.nan, dtype=total.dtype)

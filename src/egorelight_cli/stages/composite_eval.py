@@ -58,14 +58,13 @@ class Evaluation:
 def frame_errors(image: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """(4,) float64 [sum of squared errors, values, sum of SSIM, SSIM pixels] of uint8 images
     (H,W,3) in [0,1] over ``mask`` (H,W) (SSIM: the masked pixels inside its cropped border)."""
-    from egorelight_cli.render.image_metrics import SSIM_RADIUS, ssim_map
+    from egorelight_cli.render.image_metrics import masked_ssim_sum
 
     a = torch.from_numpy(image.astype(np.float64) / 255.0)
     b = torch.from_numpy(truth.astype(np.float64) / 255.0)
     m = torch.from_numpy(mask)
-    inner = m[SSIM_RADIUS:-SSIM_RADIUS, SSIM_RADIUS:-SSIM_RADIUS]
-    similarity = ssim_map(a, b)[inner]
-    return np.array([float(((a - b) ** 2)[m].sum()), 3.0 * float(m.sum()), float(similarity.sum()), float(inner.sum())])
+    similarity, count = masked_ssim_sum(a, b, m)
+    return np.array([float(((a - b) ** 2)[m].sum()), 3.0 * float(m.sum()), float(similarity), float(count)])
 
 
 def pooled_scores(errors: list[np.ndarray]) -> dict:

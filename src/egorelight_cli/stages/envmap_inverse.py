@@ -68,7 +68,7 @@ import torch.nn.functional as F
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.geometry.cameras import Camera
 from egorelight_cli.io.images import srgb_to_linear, to_unit_float
-from egorelight_cli.nn.colour_model import RootPolynomialColour
+from egorelight_cli.nn.colour_model import RootPolynomialColour, channel_gains
 from egorelight_cli.render import optical_flow as of
 from egorelight_cli.render.lighting import EnvmapPooling
 from egorelight_cli.render.uv_features import irradiance_map, shadow_map, texel_lighting, texel_map
@@ -414,7 +414,7 @@ def sync_matrix(render: np.ndarray, ego: np.ndarray, model: str) -> np.ndarray:
         return np.linalg.lstsq(render, ego, rcond=None)[0].T
     if model != "diagonal":
         raise EgorelightError(f"inverse.sync.model must be one of {', '.join(SYNC_MODELS)}, got {model!r}")
-    return np.diag((render * ego).sum(axis=0) / np.maximum((render * render).sum(axis=0), 1e-12))
+    return np.diag(channel_gains(render, ego))
 
 
 def usable_frames(data: RelightData, calibration, roles: Sequence[str], count: int,
