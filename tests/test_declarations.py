@@ -183,3 +183,39 @@ def test_a_cached_no_op_is_decided_from_the_recorded_manifest(tmp_path, tiny_cap
     payload.write_bytes(payload.read_bytes() + b"\0")  # an input payload modified
     result = run(*args)
     assert result.returncode == 1 and "the handler ran" in result.stderr
+
+
+def test_the_early_check_steps_aside_when_an_input_is_left_out_swapped_or_built_in(tmp_path, tiny_capture, run,
+                                                                                  monkeypatch):
+    """The recorded inputs must come through the same flags as now, in the same order: dropping
+    ``--gt``, swapping the files of ``--in`` and ``--gt``, or naming the built-in character in place
+    of an artifact each make another cache key, so the handler runs (it used to be skipped)."""
+    import numpy as np
+
+    from egorelight_cli import stage_spec
+
+    truth = tiny_capture / "groundtruth" / "test" / "keypoints.npz"
+    other = tmp_path / "other_keypoints.npz"
+    with np.load(truth) as arrays:
+        moved = {k: arrays[k] for k in arrays.files}
+    moved["xyz"] = moved["xyz"] + 0.01  # another keypoint file of the same layout
+    np.savez(other, **moved)
+    character, motion = tmp_path / "character", tmp_path / "motion"
+    assert run("--preset", "tiny", "character", "default", "--out", character).returncode == 0
+    base = ("--preset", "tiny", "ik", "--character", character, "--out", motion)
+    assert run(*base, "--in", truth, "--gt", other).returncode == 0
+
+    def handler_must_not_run(self):
+        raise AssertionError(f"{self.name}: the handler ran")
+
+    monkeypatch.setattr(stage_spec.Command, "handler_function", handler_must_not_run)
+    result = run(*base, "--in", truth, "--gt", other)
+    assert result.returncode == 0 and "up to date" in result.stderr
+    manifest = json.loads((motion / "manifest.json").read_text())
+    assert [s.get("param") for s in manifest["sources"]] == ["--in", "--gt"]
+    for changed in (("--in", truth), ("--in", other, "--gt", truth)):
+        result = run(*base[:-2], "--out", motion, *changed)
+        assert result.returncode == 1 and "the handler ran" in result.stderr, changed
+    built_in = ("--preset", "tiny", "ik", "--character", "default", "--in", truth, "--gt", other, "--out", motion)
+    result = run(*built_in)
+    assert result.returncode == 1 and "the handler ran" in result.stderr

@@ -115,7 +115,14 @@ class StageRun:
         sources = [Path(entry["path"]) for entry in manifest.get("sources", [])]
         if [cached_sha256_file(p) for p in sources] != [entry["digest"] for entry in manifest.get("sources", [])]:
             return False
-        command.input_params(self.values, inputs, sources)  # every given input is a recorded one (else raises)
+        # every given input is a recorded one (else input_params raises), each came through the flag it
+        # was recorded under (an input left out, or two files swapped, is another key), in the given order
+        recorded_sources = manifest.get("sources", [])
+        if (command.input_params(self.values, inputs, sources) != [e.get("param") for e in manifest.get("inputs", [])]
+                or command.source_params(self.values, sources) != [e.get("param") for e in recorded_sources]
+                or not command.read_in_given_order(self.values, [a.path for a in inputs])
+                or not command.read_in_given_order(self.values, sources)):
+            return False
         key = cache_key(self.stage, config.version, {**config.to_dict(), **({"options": recorded_options}
                                                                              if recorded_options else {})},
                         [a.digest for a in inputs] + [entry["digest"] for entry in manifest.get("sources", [])])
@@ -170,6 +177,9 @@ class StageRun:
         started = time.perf_counter()
         params = (self.command.input_params(self.values, inputs, [Path(p) for p in source_files])
                   if self.command is not None else None)
+        if self.command is not None:  # the declared input each source file came through (the early cache check)
+            source_params = self.command.source_params(self.values, [Path(s["path"]) for s in sources])
+            sources = [{**s, "param": param} if param is not None else s for s, param in zip(sources, source_params)]
         with ArtifactWriter(out, kind=kind, stage=self.stage, config=config, inputs=inputs, key=key,
                             keep=group is None or group.primary, input_params=params) as writer:
             writer.config = _keyed_config(config, self.options(options))

@@ -187,6 +187,21 @@ class Command:
             keyed.update(FrameRange.parse(values.get("frames"), values.get("shard")).key())
         return keyed
 
+    def _given(self, values: Mapping[str, Any]) -> list[tuple[Input, int, Path]]:
+        """The inputs the user gave as paths: (input, index among its values, path); built-ins left out."""
+        return [(inp, i, Path(v)) for inp in self.inputs for i, v in enumerate(_as_list(values.get(inp.name)))
+                if v is not None and str(v) not in BUILTIN_VALUES]
+
+    @staticmethod
+    def _source_of(path: Path, given: list[tuple[Input, int, Path]]) -> tuple[Input, int] | None:
+        """The given input (and value index) a file read came through: the nearest related path
+        (:func:`_nesting`), the first given on a tie; None for a file the command found itself."""
+        ranked = sorted((_nesting(path, g), k) for k, (_, _, g) in enumerate(given))
+        if not ranked or ranked[0][0] >= 3:
+            return None
+        inp, index, _ = given[ranked[0][1]]
+        return inp, index
+
     def input_params(self, values: Mapping[str, Any], artifacts: Sequence[Any], source_files: Sequence[Path]
                      ) -> list[str | None]:
         """The declared input each artifact came through (its flag; None for an artifact the
@@ -198,21 +213,41 @@ class Command:
         A failure is a bug in the command (it reads what it does not declare), so it raises
         ``RuntimeError``, not a user error.
         """
-        given = [(inp, Path(v)) for inp in self.inputs for v in _as_list(values.get(inp.name))
-                 if v is not None and str(v) not in BUILTIN_VALUES]
+        given = self._given(values)
         params: list[str | None] = []
         for artifact in artifacts:
-            ranked = sorted((_nesting(artifact.path, path), i) for i, (_, path) in enumerate(given))
-            match = given[ranked[0][1]][0] if ranked and ranked[0][0] < 3 else None
-            if match is not None and match.kinds and artifact.kind not in match.kinds:
-                raise RuntimeError(f"{self.name}: {match.flag} read a {artifact.kind} artifact; it declares "
-                                   f"{', '.join(match.kinds)}")
-            params.append(None if match is None else match.flag)
+            source = self._source_of(artifact.path, given)
+            if source is not None and source[0].kinds and artifact.kind not in source[0].kinds:
+                raise RuntimeError(f"{self.name}: {source[0].flag} read a {artifact.kind} artifact; it declares "
+                                   f"{', '.join(source[0].kinds)}")
+            params.append(None if source is None else source[0].flag)
         recorded = [a.path for a in artifacts] + [Path(p) for p in source_files]
-        for inp, path in given:
+        for inp, _, path in given:
             if not any(_related(r, path) for r in recorded):
                 raise RuntimeError(f"{self.name}: input {inp.flag} {path} did not enter the cache key")
         return params
+
+    def source_params(self, values: Mapping[str, Any], source_files: Sequence[Path]) -> list[str | None]:
+        """The declared input each non-artifact file read came through (as :meth:`input_params`)."""
+        given = self._given(values)
+        return [None if (source := self._source_of(Path(p), given)) is None else source[0].flag
+                for p in source_files]
+
+    def read_in_given_order(self, values: Mapping[str, Any], paths: Sequence[Path]) -> bool:
+        """Whether the files read (``paths``, in the order their digests enter the cache key) follow
+        the order the user gave each repeatable input's values in: the same files given in another
+        order make another key, so a recorded key only holds for the recorded order."""
+        given = self._given(values)
+        last: dict[str, int] = {}
+        for path in paths:
+            source = self._source_of(Path(path), given)
+            if source is None:
+                continue
+            flag, index = source[0].flag, source[1]
+            if index < last.get(flag, 0):
+                return False
+            last[flag] = index
+        return True
 
 
 def _as_list(value: Any) -> list:
