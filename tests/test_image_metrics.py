@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from egorelight_cli.render.image_metrics import psnr, ssim, tonemap_for_metrics
+from egorelight_cli.render.image_metrics import SSIM_RADIUS, psnr, ssim, ssim_box, tonemap_for_metrics
 
 skimage_metrics = pytest.importorskip("skimage.metrics")
 
@@ -54,3 +54,17 @@ def test_tonemap_is_srgb_of_the_clipped_exposure():
     x = torch.tensor([0.0, 0.002, 0.18, 1.0, 5.0])
     out = tonemap_for_metrics(x)
     np.testing.assert_allclose(out.numpy(), [0.0, 12.92 * 0.002, 1.055 * 0.18 ** (1 / 2.4) - 0.055, 1.0, 1.0], rtol=1e-6)
+
+
+def test_ssim_box_is_the_grown_bounding_box_and_always_fits_the_window():
+    side = 2 * SSIM_RADIUS + 1
+    mask = torch.zeros(40, 60, dtype=torch.bool)
+    mask[12:30, 20:41] = True
+    assert ssim_box(mask, margin=3) == (slice(9, 33), slice(17, 44))  # the bounding box, 3 px on each side
+    for r, c in ((0, 0), (0, 59), (39, 30), (20, 30)):
+        mask = torch.zeros(40, 60, dtype=torch.bool)
+        mask[r, c] = True
+        rows, cols = ssim_box(mask, margin=2)
+        assert rows.stop - rows.start >= side and cols.stop - cols.start >= side
+        assert 0 <= rows.start <= r < rows.stop <= 40 and 0 <= cols.start <= c < cols.stop <= 60
+    assert ssim_box(torch.zeros(40, 60, dtype=torch.bool)) == (slice(0, 40), slice(0, 60))

@@ -140,7 +140,7 @@ def test_relight_under_another_light_recomputes_the_features_and_scores_nothing(
     uvmaps = open_artifact(relight_inputs / "uvmaps_test", kind="uvmaps")
     resolution = read_exr(next((relight_inputs / "uvmaps_test" / "maps").glob("*.exr"))).shape[0]
     data = RelightData(capture, capture.sequence("test"), meshes, uvmaps, character, resolution, 1, 4,
-                       LightingOverride.parse(True, None, None, 0.0))
+                       LightingOverride.parse(True, None, None))
     frame = data.frame(int(meshes.frame_ids[0]))
     albedo = frame.maps[0:3].permute(1, 2, 0)[data.coverage]
     lit = frame.flat_irradiance[:, 0] > 0.05  # (texels in deep shadow are floored)
@@ -158,7 +158,8 @@ def test_relight_under_another_light_recomputes_the_features_and_scores_nothing(
         assert metrics["views"] == meshes.num_frames * len(metrics["cameras"])  # every frame, whatever its light
         assert option[0].strip("-") in metrics["lighting"]
     capsys.readouterr()
-    for bad in (["--flat", "--olat", "1"], ["--olat", "100000"], ["--envmap", tmp_path / "missing.exr"]):
+    for bad in (["--flat", "--olat", "1"], ["--olat", "100000"], ["--envmap", tmp_path / "missing.exr"],
+                ["--yaw", "30"], ["--flat", "--yaw", "30"]):
         out = tmp_path / "renders_bad"
         code = _main("--preset", "tiny", "relight", "--capture", tiny_capture, "--meshes", skinned_meshes / "test.npz",
                      "--uvmaps", relight_inputs / "uvmaps_test", "--model", relight_model, *bad, "--out", out)
@@ -220,6 +221,42 @@ def test_relight_frame_shards_merge_into_the_single_run(tiny_capture, skinned_me
         for i, part in enumerate(parts):
             assert _main(*args, "--shard", f"{i}/{count}", "--out", part) == 0
         assert_shards_merge_into(tmp_path / "whole", parts, tmp_path / f"merged{count}")
+
+
+@pytest.mark.parametrize("setting, says", [
+    ("train.validation_fraction=0.9", "holds out all 2"),   # relight_train's 2 HDR-lit frames, none left
+    ("train.validation_fraction=1.5", "validation_fraction"),
+    ("net.attention_level=3", "attention_level"),           # the tiny U-Net has 2 levels
+])
+def test_train_relight_refuses_a_config_it_cannot_train(tiny_capture, skinned_meshes, relight_inputs, tmp_path,
+                                                       capsys, setting, says):
+    out = tmp_path / "relight"
+    code = _main("--preset", "tiny", "--set", setting, "train", "relight", "--capture", tiny_capture, "--meshes",
+                 skinned_meshes / "relight_train.npz", "--uvmaps", relight_inputs / "uvmaps_relight_train",
+                 "--out", out)
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and len(err.splitlines()) == 1 and err.startswith("egorelight: error:") and says in err, err
+    assert not out.exists()
+
+
+def test_relight_loss_takes_any_subject_mask():
+    """A subject at the image's edge, a single pixel or none at all: the SSIM box still fits the window."""
+    import torch
+
+    from egorelight_cli.render.gaussians import GaussianRender
+    from egorelight_cli.stages.relight import relight_loss
+
+    rng = np.random.default_rng(4)
+    colour, target = (torch.from_numpy(rng.uniform(0, 1, (40, 50, 3))) for _ in range(2))
+    render = GaussianRender(colour=colour, alpha=torch.ones(40, 50), depth=torch.ones(40, 50),
+                            passes={"diffuse": colour})
+    for rows, cols in ((slice(0, 2), slice(10, 30)), (slice(39, 40), slice(49, 50)), (slice(0, 0), slice(0, 0))):
+        mask = torch.zeros(40, 50, dtype=torch.bool)
+        mask[rows, cols] = True
+        terms = relight_loss(render, target, mask, torch.tensor(0.0), "linear")
+        assert all(torch.isfinite(v) for v in terms.values())
+        # nothing to compare in an empty mask; a subject pixel or more gives a positive loss
+        assert (float(terms["ssim"]) > 0.0 and float(terms["l1"]) > 0.0) == bool(mask.any())
 
 
 def test_relight_loss_terms_are_means_over_the_subject_whatever_the_framing():

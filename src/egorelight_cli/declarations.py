@@ -247,8 +247,8 @@ STAGE_COMMANDS = (
                             type=bool, default=False),
                      Option("--olat", "olat", "Light every frame with light I alone (not scored).", type=int,
                             minimum=0),
-                     Option("--yaw", "yaw", "Rotation of --envmap about the up axis, degrees.", type=float,
-                            default=0.0)),
+                     Option("--yaw", "yaw", "Rotation of --envmap about the up axis, degrees (default 0; only "
+                            "with --envmap).", type=float)),
             per_frame=True),
     Command(("envmap",), "envmap",
             "Front-camera scan -> equirect panorama -> inpainted map -> colour model (fitted by inverse rendering of the "

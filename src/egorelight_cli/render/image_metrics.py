@@ -35,6 +35,26 @@ def psnr(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor | None = None, dat
     return 10.0 * torch.log10(data_range ** 2 / mse.clamp_min(1e-20))
 
 
+def ssim_box(mask: torch.Tensor, margin: int = 8) -> tuple[slice, slice]:
+    """(rows, cols) slices of the bounding box of ``mask`` (H,W) bool grown by ``margin`` pixels and,
+    where it is smaller, to the SSIM window (``2 * SSIM_RADIUS + 1`` pixels a side), clipped to the
+    image: a box :func:`ssim` can always be computed in. An empty mask gives the whole image."""
+    rows, cols = torch.nonzero(mask, as_tuple=True)
+    if len(rows) == 0:
+        return slice(0, mask.shape[0]), slice(0, mask.shape[1])
+    side = 2 * SSIM_RADIUS + 1
+
+    def span(lo: int, hi: int, size: int) -> slice:  # [lo, hi) grown to `side`, shifted inside [0, size)
+        lo, hi = max(lo - margin, 0), min(hi + margin, size)
+        missing = max(side - (hi - lo), 0)
+        lo = max(lo - (missing + 1) // 2, 0)
+        hi = min(max(hi + missing // 2, lo + side), size)
+        return slice(max(min(lo, hi - side), 0), hi)
+
+    return span(int(rows.min()), int(rows.max()) + 1, mask.shape[0]), span(int(cols.min()), int(cols.max()) + 1,
+                                                                             mask.shape[1])
+
+
 def _gaussian_window(dtype: torch.dtype) -> torch.Tensor:
     x = torch.arange(-SSIM_RADIUS, SSIM_RADIUS + 1, dtype=dtype)
     w = torch.exp(-0.5 * (x / SSIM_SIGMA) ** 2)

@@ -57,6 +57,16 @@ def training_cameras(capture: Capture, sequence) -> list[str]:
     return [n for n in names if n not in held_out]
 
 
+def split_held_out(frames: np.ndarray, fraction: float, what: str, path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """(training, held-out) frames: the last ``fraction`` of ``frames`` (at least one) is held out,
+    and at least one frame must be left to train on; ``what`` and ``path`` name them in the error."""
+    held = max(1, int(round(float(fraction) * len(frames))))
+    if held >= len(frames):
+        raise EgorelightError(f"train.validation_fraction {fraction} holds out all {len(frames)} {what}: "
+                              "lower it so that at least one frame is left to train on", path)
+    return frames[:-held], frames[-held:]
+
+
 def _flat_scale(sequence, frames: np.ndarray) -> float:
     scales = {float(sequence.light_entry(int(f)).get("scale", 1.0)) for f in frames} if sequence.lights else {1.0}
     return float(np.median(sorted(scales)))
@@ -111,8 +121,9 @@ class GeoliftCommands:
             if len(frames) < 2:
                 raise EgorelightError(f"the meshes cover {len(frames)} flat-lit frame(s) of sequence {name!r}; "
                                       "training and validation need at least 2", meshes_path)
-            held = max(1, int(round(float(cfg.train.validation_fraction) * len(frames))))
-            parts.append((sequence, meshes, frames[:-held], frames[-held:], training_cameras(capture, sequence)))
+            train_frames, val_frames = split_held_out(frames, cfg.train.validation_fraction,
+                                                      f"flat-lit frame(s) of sequence {name!r}", meshes_path)
+            parts.append((sequence, meshes, train_frames, val_frames, training_cameras(capture, sequence)))
             inputs += [meshes_artifact] if meshes_artifact is not None else []
             sources += [] if meshes_artifact else [meshes_path]
         self.run.compute_device()  # CPU stage: --device cuda is refused, not silently ignored

@@ -43,7 +43,7 @@ from egorelight_cli.errors import EgorelightError
 from egorelight_cli.geometry.cameras import Camera
 from egorelight_cli.nn.relight_net import DiffuseNet, SpecularNet
 from egorelight_cli.render.gaussians import GaussianRender, render_gaussians
-from egorelight_cli.render.image_metrics import ssim, tonemap_for_metrics
+from egorelight_cli.render.image_metrics import ssim, ssim_box, tonemap_for_metrics
 from egorelight_cli.render.lightstage import LightStage
 from egorelight_cli.render.raster import UVRaster, rasterize_uv
 from egorelight_cli.render.uv_features import TexelLighting, ray_encoding, select_rays, texel_lighting, texel_surface
@@ -285,6 +285,8 @@ def render_relit(model: RelightModel, frame: RelightFrame, coverage: torch.Tenso
 
 
 LOSS_SPACES = ("linear", "display")
+#: training views whose subject mask has fewer pixels are not trained on (``train relight``)
+MIN_SUBJECT_PIXELS = 16
 
 
 def relight_loss(render: GaussianRender, target: torch.Tensor, mask: torch.Tensor,
@@ -298,7 +300,8 @@ def relight_loss(render: GaussianRender, target: torch.Tensor, mask: torch.Tenso
     The L1 and L2 terms are means over the subject's pixels (``mask``), not over the whole image: a camera
     that frames the subject small would otherwise dilute them against SSIM (measured on the cpu
     demo: the whole-image mean was ~1/7 of the subject's, and training traded PSNR for SSIM).
-    SSIM is computed in the subject's bounding box (8 pixels of margin).
+    SSIM is computed in the subject's bounding box (8 pixels of margin, at least the SSIM window a side;
+    :func:`~egorelight_cli.render.image_metrics.ssim_box`).
     """
     weights = LOSS_WEIGHTS if weights is None else weights
     if space not in LOSS_SPACES:
@@ -308,9 +311,9 @@ def relight_loss(render: GaussianRender, target: torch.Tensor, mask: torch.Tenso
     if space == "display":
         image, diffuse, target = (tonemap_for_metrics(x) for x in (image, diffuse, target))
     image, diffuse, target = image * weight, diffuse * weight, target * weight
-    rows, cols = torch.nonzero(mask, as_tuple=True)
-    box = (slice(max(int(rows.min()) - 8, 0), int(rows.max()) + 9), slice(max(int(cols.min()) - 8, 0), int(cols.max()) + 9))
-    subject_values = 3.0 * weight.sum()  # L1 and L2 are means over the subject's pixels, whatever the framing
+    box = ssim_box(mask, margin=8)
+    # L1 and L2 are means over the subject's pixels, whatever the framing (0 for an empty mask)
+    subject_values = (3.0 * weight.sum()).clamp_min(1.0)
     terms = {"l1": (image - target).abs().sum() / subject_values, "ssim": 1.0 - ssim(image[box], target[box]),
              "reg": regulariser, "diffuse": (diffuse - target).abs().sum() / subject_values,
              "l2": (image - target).square().sum() / subject_values}

@@ -41,7 +41,8 @@ from egorelight_cli.render.lightstage import LightStage
 from egorelight_cli.render.raster import rasterize_uv
 from egorelight_cli.render.uv_features import TexelLighting, lighting_feature_maps
 from egorelight_cli.stages import relight as rl
-from egorelight_cli.stages.geolift_commands import load_character_meshes, map_path, training_cameras
+from egorelight_cli.stages.geolift_commands import (load_character_meshes, map_path, split_held_out,
+                                                    training_cameras)
 from egorelight_cli.sharding import FrameRange, stack_rows, write_preview
 from egorelight_cli.stages.relight_eval import (HEAD_PARTS, PARTS_PASS, SCORED_PATTERNS, SCORES_NPZ, RelightScores,
                                                 HEADSET_NOT_EXCLUDED, HeadsetExclusion, display_images, part_channels,
@@ -63,14 +64,19 @@ class LightingOverride:
     source: Path | None = None
 
     @classmethod
-    def parse(cls, flat: bool, olat: int | None, envmap: Path | None, yaw_deg: float) -> "LightingOverride | None":
-        """From the command's options (at most one of them), or None for the sequence's own light."""
+    def parse(cls, flat: bool, olat: int | None, envmap: Path | None,
+              yaw_deg: float | None = None) -> "LightingOverride | None":
+        """From the command's options (at most one of them; ``yaw_deg`` turns ``envmap`` and needs it,
+        None: 0), or None for the sequence's own light."""
         from egorelight_cli.render.envmaps import load_envmap
 
         chosen = [name for name, given in (("--flat", flat), ("--olat", olat is not None), ("--envmap", envmap))
                   if given]
         if len(chosen) > 1:
             raise EgorelightError(f"give at most one lighting: {' and '.join(chosen)} were given")
+        if yaw_deg is not None and envmap is None:
+            raise EgorelightError("--yaw turns the map of --envmap: give --envmap FILE with it")
+        yaw_deg = 0.0 if yaw_deg is None else yaw_deg
         if flat:
             return cls({"pattern": "flat", "description": "flat"}, {})
         if olat is not None:
@@ -230,9 +236,12 @@ class RelightData:
     def target(self, frame_id: int, camera: str) -> tuple[torch.Tensor, torch.Tensor]:
         """(image (H,W,3) linear, subject mask (H,W) bool) captured by ``camera`` at ``frame_id``."""
         image = read_exr(self.sequence.studio_image_path(camera, frame_id)).layer("", ("R", "G", "B"))
+        return torch.from_numpy(np.ascontiguousarray(image)), torch.from_numpy(self.subject_mask(frame_id, camera))
+
+    def subject_mask(self, frame_id: int, camera: str) -> np.ndarray:
+        """The subject mask (H,W) bool of ``camera`` at ``frame_id`` (the mask image's first channel > 127)."""
         mask = read_image(self.sequence.mask_path(camera, frame_id))
-        mask = mask.reshape(mask.shape[0], mask.shape[1], -1)[..., 0] > 127
-        return torch.from_numpy(np.ascontiguousarray(image)), torch.from_numpy(mask)
+        return mask.reshape(mask.shape[0], mask.shape[1], -1)[..., 0] > 127
 
 
 def _lit_frames(sequence, meshes, uvmaps: Artifact, patterns: tuple[str, ...] | None = ("envmap",)) -> np.ndarray:
@@ -371,10 +380,19 @@ class RelightCommands:
         if len(frames) < 2:
             raise EgorelightError(f"{len(frames)} HDR-lit frame(s): training and validation need at least 2",
                                   uvmaps_path)
-        held = max(1, int(round(float(cfg.train.validation_fraction) * len(frames))))
+        if int(cfg.net.attention_level) > int(cfg.net.levels):
+            raise EgorelightError(f"config key 'net.attention_level' must be at most net.levels "
+                                  f"({cfg.net.levels}), got {cfg.net.attention_level}")
+        train_frames, val_frames = split_held_out(frames, cfg.train.validation_fraction,
+                                                  f"HDR-lit frame(s) of {cfg.train.sequence!r}", uvmaps_path)
         cameras = training_cameras(data.capture, data.sequence)
-        train_views = [(int(f), c) for f in frames[:-held] for c in cameras]
-        val_views = [(int(f), c) for f in frames[-held:] for c in cameras]
+        # a view whose camera barely sees the subject has nothing to learn from (and no SSIM box)
+        train_views = [(int(f), c) for f in train_frames for c in cameras
+                       if data.subject_mask(int(f), c).sum() >= rl.MIN_SUBJECT_PIXELS]
+        if not train_views:
+            raise EgorelightError(f"no training camera sees the subject (at least {rl.MIN_SUBJECT_PIXELS} mask "
+                                  f"pixels) in the {len(train_frames)} training frame(s)", capture_path)
+        val_views = [(int(f), c) for f in val_frames for c in cameras]
         self.run.compute_device()
         checkpoint = Path(out).parent / f".{Path(out).name}.checkpoint.pt"
 
@@ -387,8 +405,8 @@ class RelightCommands:
             torch.manual_seed(int(cfg.seed))
             model = rl.RelightModel.from_architecture(net)
             if model.config["albedo"] == "texture":
-                train_frames = sorted({f for f, _ in train_views})
-                start = rl.median_albedo([data.frame(f) for f in train_frames], data.coverage)
+                seen_frames = sorted({f for f, _ in train_views})
+                start = rl.median_albedo([data.frame(f) for f in seen_frames], data.coverage)
                 model.start_albedo(start, data.coverage)
             optimizer = torch.optim.Adam(model.parameters(), lr=float(t.lr))
             steps = int(t.steps)
@@ -422,7 +440,7 @@ class RelightCommands:
             if previews:
                 write_image(writer.path(PREVIEW_PNG), stack_rows([previews[i] for i in sorted(previews)]))
             extra = {"uv_resolution": int(net.uv_resolution), "sequence": data.sequence.name, "cameras": cameras,
-                     "train_frames": frames[:-held].tolist(), "val_frames": frames[-held:].tolist()}
+                     "train_frames": train_frames.tolist(), "val_frames": val_frames.tolist()}
             write_model(writer.workdir, ModelPayload(rl.MODEL_STAGE, model.architecture(), model.state_dict(), extra,
                                                      curve), curve_title="relight training loss")
             loss_terms = (f"{weights['l1']:g} L1 + {weights['ssim']:g} (1 - SSIM) + {weights['reg']:g} L_reg + "
@@ -501,7 +519,7 @@ def train_command(run: StageRun, capture: Path, meshes: Path, uvmaps: Path, char
 
 def relight_command(run: StageRun, capture: Path, meshes: Path, uvmaps: Path, model: Path, character: str,
                     camera_json: Path | None, envmap: Path | None, calibration: Path | None, sequence: str, cameras: str,
-                    flat: bool, olat: int | None, yaw: float, out: Path, frame_range: FrameRange) -> Path:
+                    flat: bool, olat: int | None, yaw: float | None, out: Path, frame_range: FrameRange) -> Path:
     lighting = LightingOverride.parse(flat, olat, envmap, yaw)
     return RelightCommands(run).predict(capture, meshes, uvmaps, model, character, sequence,
                                         CameraSelection(cameras, camera_json), out, lighting, frame_range, calibration)
