@@ -272,3 +272,7 @@ def test_bad_inputs_give_one_line_errors(animate_inputs, tmp_path, capsys):
                     "share no frame")
     _one_line_error(capsys, _run("--preset", "tiny", "animate", "--motion", tmp_path / "missing.npz", "--model",
                                  animate_inputs["model"], "--no-depth", "--out", tmp_path / "d"), "not found")
+    # --no-depth reads no cloud: one given is refused (was an internal error), nothing written
+    _one_line_error(capsys, _run(*base, "--no-depth", "--pointcloud", tmp_path / "late.npz", "--out", tmp_path / "e"),
+                    "--no-depth reads no point cloud", "late.npz")
+    assert not (tmp_path / "e").exists()

@@ -144,6 +144,7 @@ def test_bad_inputs_give_one_line_errors(tiny_capture, oracle_calibration_artifa
         (["egodepth", "--capture", str(oracle_calibration_artifact), "--calibration", str(oracle_calibration_artifact),
           "--method", "sgbm", "--out", str(tmp_path / "d")], "wrong artifact kind"),
         (base + ["--model", str(trained_model), "--seq", "relight_train", "--out", str(tmp_path / "e")], "no ego"),
+        (base + ["--method", "sgbm", "--model", str(trained_model), "--out", str(tmp_path / "h")], "reads no model"),
         (["train", "egodepth", "--preset", "tiny", "--capture", str(tiny_capture), "--calibration",
           str(oracle_calibration_artifact), "--set", "train.sequences=[handeye]", "--out", str(tmp_path / "f")],
          "no training frame"),
@@ -155,6 +156,23 @@ def test_bad_inputs_give_one_line_errors(tiny_capture, oracle_calibration_artifa
         assert run_cli(*args) == 2, args
         err = capsys.readouterr().err.strip()
         assert err.startswith("egorelight: error:") and message in err and "\n" not in err, err
+
+
+def test_every_file_of_the_backbone_folder_enters_the_cache_key(tmp_path):
+    from egorelight_cli.errors import EgorelightError
+    from egorelight_cli.stages.egodepth_commands import backbone_sources
+
+    folder = tmp_path / "depth-anything"
+    folder.mkdir()
+    (folder / "model.safetensors").write_bytes(b"weights")
+    with pytest.raises(EgorelightError, match="config.json"):
+        backbone_sources(folder)
+    (folder / "config.json").write_text("{}")
+    (folder / "sub").mkdir()
+    (folder / "sub" / "preprocessor_config.json").write_text("{}")
+    assert backbone_sources(folder) == [folder / "config.json", folder / "model.safetensors",
+                                        folder / "sub" / "preprocessor_config.json"]
+    assert backbone_sources(None) == []
 
 
 def test_random_crops_stay_inside_and_reach_the_borders():

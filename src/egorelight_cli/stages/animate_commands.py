@@ -77,8 +77,6 @@ def _load_clouds(path: Path | None, motions: Sequence[Motion],
     from egorelight_cli.io.pointcloud import load_pointcloud
 
     if no_depth:
-        if path is not None:
-            console.info("--no-depth: the point cloud is ignored")
         return None, None, 0
     if path is None:
         raise EgorelightError("a point cloud is required (--pointcloud), or run with --no-depth")
@@ -100,7 +98,9 @@ def _motion_and_cloud_artifacts(motion_paths: Sequence[Path], pointcloud_path: P
     motion_artifacts = [resolve_payload(path, "motion", MOTION_PAYLOAD, "motion")[1] for path in motion_paths]
     lone = [Path(path) for path, artifact in zip(motion_paths, motion_artifacts) if artifact is None]
     cloud_artifact = None
-    if pointcloud_path is not None and not no_depth:
+    if pointcloud_path is not None and no_depth:
+        raise EgorelightError("--no-depth reads no point cloud: leave out --pointcloud", pointcloud_path)
+    if pointcloud_path is not None:
         cloud_artifact = resolve_payload(pointcloud_path, "pointcloud", POINTCLOUD_PAYLOAD, "pointcloud")[1]
         lone += [] if cloud_artifact is not None else [Path(pointcloud_path)]
     return motion_artifacts, cloud_artifact, lone

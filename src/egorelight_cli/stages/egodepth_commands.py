@@ -46,6 +46,17 @@ def load_inputs(capture_path: Path, calibration_path: Path,
     return capture, capture_artifact, calibration, calibration_artifact
 
 
+def backbone_sources(backbone: Path | None) -> list[Path]:
+    """The files of a ``--backbone`` folder that enter the cache key: every file in it (``config.json``
+    and the weights ``from_pretrained`` loads, whatever their format), sorted; none without one."""
+    if backbone is None:
+        return []
+    files = sorted(p for p in Path(backbone).rglob("*") if p.is_file() and not p.name.startswith("."))
+    if Path(backbone) / "config.json" not in files:
+        raise EgorelightError("not a Depth-Anything-V2 model folder (no config.json)", backbone)
+    return files
+
+
 def _prior(backbone: Path | None, device: torch.device):
     if backbone is None:
         return None
@@ -103,7 +114,7 @@ class EgodepthCommands:
         sequences = [capture.sequence(n) for n in names]
         device = self.run.compute_device()
         prior = _prior(backbone, device)  # checks the folder before anything runs
-        sources = [backbone / "config.json"] if backbone is not None else []
+        sources = backbone_sources(backbone)
         checkpoint = checkpoint_beside(out)
 
         def write(writer: ArtifactWriter, cfg: Config) -> None:
@@ -166,11 +177,13 @@ class EgodepthCommands:
         roles = tuple(cfg.roles)
         sequence = capture.sequence(seq)
         inputs = [capture_artifact, calibration_artifact]
-        sources = [backbone / "config.json"] if backbone is not None else []
+        sources = backbone_sources(backbone)
         if method == "net":
             if model_path is None:
                 raise EgorelightError("egodepth --method net needs --model (a `train egodepth` artifact)")
             inputs.append(open_artifact(model_path, kind="model"))
+        elif model_path is not None:
+            raise EgorelightError(f"egodepth --method {method} reads no model: leave out --model", model_path)
         if self.run.up_to_date(out, "pointcloud", inputs, sources):
             return Path(out)
         from egorelight_cli.stages import egodepth as ed
