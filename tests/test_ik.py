@@ -153,6 +153,29 @@ def test_recovers_a_known_motion_noise_free(character, model):
     assert truth["gt_dof_error_hands_deg"] < 1.0  # hands lie in the PCA subspace: recovered exactly
 
 
+def test_frame_runs_split_the_ids_where_frames_are_missing():
+    from egorelight_cli.stages.ik import frame_runs
+
+    assert frame_runs(np.array([0, 1, 2, 1000, 1001, 1002])) == [slice(0, 3), slice(3, 6)]
+    assert frame_runs(np.arange(0, 50, 5)) == [slice(0, 10)]  # evenly subsampled: one run
+    assert frame_runs(np.array([3, 4, 6, 7, 8])) == [slice(0, 2), slice(2, 5)]
+    assert frame_runs(np.array([7])) == [slice(0, 1)] and frame_runs(np.array([2, 1, 3])) == [slice(0, 3)]
+
+
+def test_the_temporal_term_does_not_couple_frames_across_a_gap(character, model):
+    """Two stretches of motion 1000 frames apart, the second 1 m away: solved together they give
+    what each gives alone (the temporal term used to pull them towards each other)."""
+    theta = smooth_motion(character, model, T=12, seed=4)
+    theta[6:, classify_dofs(character).root[0]] += 1.0
+    keypoints = keypoints_of(character, theta)
+    ids = np.array([0, 1, 2, 3, 4, 5, 1000, 1001, 1002, 1003, 1004, 1005])
+    whole = solve_ik(character, Keypoints(keypoints.xyz, keypoints.confidence, ids, keypoints.names, 30.0), model, FAST)
+    halves = [solve_ik(character, Keypoints(keypoints.xyz[run], keypoints.confidence[run], ids[run], keypoints.names,
+                                            30.0), model, FAST) for run in (slice(0, 6), slice(6, 12))]
+    np.testing.assert_allclose(whole.theta, np.concatenate([h.theta for h in halves]), atol=1e-9)
+    np.testing.assert_array_equal(whole.frame_ids, ids)
+
+
 def test_lbfgs_baseline_runs_and_fits(character, model):
     theta = smooth_motion(character, model, T=10, seed=2)
     settings = IKSettings(solver="lbfgs", lbfgs_iterations=30, hand_samples=1000)

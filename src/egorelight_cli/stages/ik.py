@@ -219,14 +219,15 @@ def solve_ik(character: Character, keypoints: Keypoints, model: IKModel | None =
     conf = _data_weights(keypoints, settings)
     rejected = distant_keypoints(xyz, conf > 0, settings.outlier_distance_m)
     conf[rejected] = 0.0
-    theta, reports = _fit(character, model, xyz, conf, settings)
+    runs = frame_runs(keypoints.frame_ids)
+    theta, reports = _fit_runs(runs, character, model, xyz, conf, settings)
     fitted, residual = _fit_residuals(character, theta, xyz, conf)
     again = residual_outliers(residual, conf > 0, settings.outlier_residual_factor, settings.outlier_min_residual_m)
     if again.any():
         console.debug(f"ik: {int(again.sum())} keypoints far off the first fit dropped, fitting again")
         rejected |= again
         conf[again] = 0.0
-        theta, more = _fit(character, model, xyz, conf, settings)
+        theta, more = _fit_runs(runs, character, model, xyz, conf, settings)
         reports += more
         fitted, residual = _fit_residuals(character, theta, xyz, conf)
     fps = keypoints.fps or settings.fps
@@ -241,6 +242,25 @@ def _fit_residuals(character: Character, theta: np.ndarray, xyz: np.ndarray, con
     residual = np.linalg.norm(fitted - xyz, axis=-1)
     residual[conf <= 0] = np.nan
     return fitted, residual
+
+
+def frame_runs(frame_ids: np.ndarray) -> list[slice]:
+    """The runs of evenly spaced frames in ``frame_ids`` (T,) int: a run ends where the next frame
+    lies more than 1.5 times the median step away (frames are missing there), so the temporal
+    term never couples frames across a gap. One run when the ids are not increasing."""
+    steps = np.diff(np.asarray(frame_ids, np.int64))
+    if len(steps) == 0 or np.any(steps <= 0):
+        return [slice(0, len(frame_ids))]
+    breaks = np.flatnonzero(steps > 1.5 * np.median(steps)) + 1
+    bounds = [0, *breaks.tolist(), len(frame_ids)]
+    return [slice(a, b) for a, b in zip(bounds[:-1], bounds[1:])]
+
+
+def _fit_runs(runs: list[slice], character: Character, model: IKModel, xyz: np.ndarray, conf: np.ndarray,
+              settings: IKSettings) -> tuple[np.ndarray, list[StageReport]]:
+    """:func:`_fit` on each run of frames (:func:`frame_runs`) alone, stacked."""
+    fits = [_fit(character, model, xyz[run], conf[run], settings) for run in runs]
+    return np.concatenate([theta for theta, _ in fits]), [report for _, reports in fits for report in reports]
 
 
 def _fit(character: Character, model: IKModel, xyz: np.ndarray, conf: np.ndarray,
