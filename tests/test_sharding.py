@@ -72,6 +72,15 @@ def test_merge_refuses_incomplete_overlapping_or_mismatched_parts(egopose_runs, 
         "overlap": [root / "part0of2", root / "part0of4", root / "part1of4", root / "part1of2"],
         "not a frame shard": [root / "whole"],
     }
+    # a shard made from another lone input file (its digest in the manifest's sources)
+    import shutil
+
+    other = tmp_path / "part1of2_other"
+    shutil.copytree(root / "part1of2", other)
+    manifest = json.loads((other / "manifest.json").read_text())
+    manifest["sources"] = [{"path": "weights.safetensors", "digest": "sha256:" + "0" * 64}]
+    (other / "manifest.json").write_text(json.dumps(manifest))
+    cases["different input files"] = [root / "part0of2", other]
     for i, (message, parts) in enumerate(cases.items()):
         capsys.readouterr()
         assert cli_exit_code("merge", *parts, "--out", tmp_path / f"m{i}") == 2

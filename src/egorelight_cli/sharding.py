@@ -195,6 +195,8 @@ def _check_parts(parts) -> list:
         if [(i.get("kind"), i.get("digest")) for i in m.get("inputs", [])] != \
                 [(i.get("kind"), i.get("digest")) for i in first.get("inputs", [])]:
             raise EgorelightError("parts were made from different inputs", part.manifest_path)
+        if [i.get("digest") for i in m.get("sources", [])] != [i.get("digest") for i in first.get("sources", [])]:
+            raise EgorelightError("parts were made from different input files", part.manifest_path)
         if m["shard"]["sequence_frames"] != first["shard"]["sequence_frames"]:
             raise EgorelightError("parts are shards of sequences of different lengths", part.manifest_path)
     ordered = sorted(parts, key=lambda p: p.manifest["shard"]["start"])
