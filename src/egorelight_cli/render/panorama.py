@@ -208,16 +208,18 @@ def pad_equirect(array: np.ndarray, pad_x: int, pad_y: int) -> np.ndarray:
 
 def _push_pull(values: np.ndarray, known: np.ndarray) -> np.ndarray:
     """Fill unknown pixels of (H,W,C) ``values`` by a push-pull pyramid: weighted 2x2 averages down
-    to a level where every pixel is known, then each level's holes take the bilinear upsampling of
-    the coarser filled level."""
+    to a level where every pixel is known (at the coarsest, 1 pixel high or wide, the holes left
+    take the mean of the known pixels), then each level's holes take the bilinear upsampling of the
+    coarser filled level."""
     if known.all():
         return values
     weights = known.astype(np.float64)
     if not weights.any():
         raise EgorelightError("nothing to inpaint from: no texel was observed")
     H, W = values.shape[:2]
-    if min(H, W) <= 1 or (weights > 0).all():
-        return values
+    if min(H, W) <= 1:  # the coarsest level: what is still unknown takes the mean of what is known
+        mean = (values * weights[..., None]).sum(axis=(0, 1)) / weights.sum()
+        return np.where(known[..., None], values, mean)
     h, w = (H + 1) // 2, (W + 1) // 2
     pv = np.pad(values * weights[..., None], ((0, 2 * h - H), (0, 2 * w - W), (0, 0)), mode="edge")
     pw = np.pad(weights, ((0, 2 * h - H), (0, 2 * w - W)), mode="edge")
