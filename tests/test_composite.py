@@ -72,14 +72,19 @@ def test_diagonal_inverse_is_exact_for_channel_gains_and_leaves_an_albedo_as_it_
     gains = RootPolynomialColour(np.concatenate([np.diag([1.6, 1.2, 0.8]), np.zeros((3, 3))], axis=1), 1.0)
     g = diagonal_inverse(gains, gains.apply_numpy(sky))
     np.testing.assert_allclose(g, 1.0 / np.array([1.6, 1.2, 0.8]), rtol=1e-5)
-    # with cross terms: the gains are the least-squares fit of E_l ~ g E_h over the map's texels
+    # with cross terms: the gains are the least-squares fit of E_l ~ g E_h over the map's texels,
+    # each weighted by its solid angle
+    from egorelight_cli.geometry.equirect import equirect_solid_angles
+
     model = _model()
     E_h = model.apply_numpy(sky).astype(np.float64)
     g = diagonal_inverse(model, E_h)
     E_l = invert_colour(model, E_h)[0].astype(np.float64).reshape(-1, 3)
+    root_w = np.sqrt(equirect_solid_angles(16, 32).reshape(-1))
     for c in range(3):
-        best = np.linalg.lstsq(E_h.reshape(-1, 3)[:, c:c + 1], E_l[:, c], rcond=None)[0][0]
-        assert abs(g[c] - best) < 1e-6 * abs(best)
+        best = np.linalg.lstsq(root_w[:, None] * E_h.reshape(-1, 3)[:, c:c + 1], root_w * E_l[:, c], rcond=None)[0][0]
+        unweighted = np.linalg.lstsq(E_h.reshape(-1, 3)[:, c:c + 1], E_l[:, c], rcond=None)[0][0]
+        assert abs(g[c] - best) < 1e-6 * abs(best) and abs(g[c] - unweighted) > 1e-5 * abs(best)
     # an avatar colour = albedo x light: a gain per channel (any) keeps the albedo's ratios, the exact
     # inverse of the cross terms does not (on a saturated red albedo it moves the hue the light did not have)
     albedo = np.array([0.6, 0.15, 0.1])

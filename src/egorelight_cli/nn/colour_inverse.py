@@ -47,6 +47,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from egorelight_cli.errors import EgorelightError
+from egorelight_cli.geometry.equirect import equirect_solid_angles
 from egorelight_cli.nn.colour_model import RootPolynomialColour, channel_gains
 
 #: (6,3) ``phi(u) ~ M u`` near grey (exact for grey): the root terms' arithmetic-mean linearisation.
@@ -147,12 +148,18 @@ INVERSE_METHODS = ("diagonal", "exact")
 
 
 def diagonal_inverse(model: RootPolynomialColour, envmap: np.ndarray, iterations: int = 20) -> np.ndarray:
-    """(3,) per-channel gains ``g`` with ``E_l ~ g E_h``: least squares over the texels of
-    ``envmap`` (...,3), the ``E_h`` map of ``model``, against their exact inverses (module docstring)."""
-    E_h = np.asarray(envmap, np.float64).reshape(-1, 3)
+    """(3,) per-channel gains ``g`` with ``E_l ~ g E_h``: least squares over the texels of the
+    equirect ``envmap`` (H,W,3), the ``E_h`` map of ``model``, against their exact inverses (module
+    docstring), each texel weighted by its solid angle (a light integrates over the sphere; unweighted,
+    the rows by the poles counted ~1/sin(theta) times too much)."""
+    E_h = np.asarray(envmap, np.float64)
+    if E_h.ndim != 3 or E_h.shape[-1] != 3:
+        raise EgorelightError(f"the environment map must be an (H,W,3) equirect map, got shape {E_h.shape}")
+    solid_angles = equirect_solid_angles(*E_h.shape[:2]).reshape(-1)
+    E_h = E_h.reshape(-1, 3)
     if not ((E_h * E_h).sum(axis=0) > 0).all():
         raise EgorelightError("the environment map has a channel that is 0 everywhere: no gain to fit")
-    return channel_gains(E_h, invert_colour(model, E_h, iterations)[0])
+    return channel_gains(E_h, invert_colour(model, E_h, iterations)[0], solid_angles)
 
 
 @dataclass(frozen=True, eq=False)

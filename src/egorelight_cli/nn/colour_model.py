@@ -78,12 +78,14 @@ def fit_colour_matrix(source: np.ndarray, target: np.ndarray, gamma: float = 1.0
     return A.T
 
 
-def channel_gains(source: np.ndarray, target: np.ndarray) -> np.ndarray:
-    """(3,) least-squares gains ``g`` with ``target ~ g * source`` per channel, over (N,3) pairs
-    (a channel whose source is 0 everywhere gets its numerator over 1e-12)."""
+def channel_gains(source: np.ndarray, target: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
+    """(3,) least-squares gains ``g`` with ``target ~ g * source`` per channel, over (N,3) pairs,
+    each pair weighted by ``weights`` (N,) when given (a channel whose source is 0 everywhere gets
+    its numerator over 1e-12)."""
     source = np.asarray(source, np.float64).reshape(-1, 3)
     target = np.asarray(target, np.float64).reshape(-1, 3)
-    return (source * target).sum(axis=0) / np.maximum((source * source).sum(axis=0), 1e-12)
+    w = np.ones((len(source), 1)) if weights is None else np.asarray(weights, np.float64).reshape(-1, 1)
+    return (w * source * target).sum(axis=0) / np.maximum((w * source * source).sum(axis=0), 1e-12)
 
 
 class RootPolynomialColour(torch.nn.Module):
