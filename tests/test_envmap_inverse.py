@@ -86,6 +86,23 @@ def test_part_l1_balances_parts_and_regulariser_bounds_the_range():
     assert float(range_regulariser(torch.full((2, 4, 3), -0.5), 1.0)) == pytest.approx(0.5, rel=1e-6)
 
 
+def test_auto_reg_max_is_the_training_lights_range_times_their_scale(tmp_path):
+    from egorelight_cli.render.envmaps import write_envmap
+    from egorelight_cli.stages.envmap_inverse import auto_reg_max
+
+    (tmp_path / "envmaps").mkdir()
+    write_envmap(tmp_path / "envmaps" / "dim.exr", np.full((8, 16, 3), 0.5, np.float32))
+    write_envmap(tmp_path / "envmaps" / "bright.exr", np.full((8, 16, 3), 4.0, np.float32))
+    sequences = {"relight_train": [{"pattern": "envmap", "envmap": "dim", "scale": 3.0}, {"pattern": "flat"}],
+                 "test": [{"pattern": "envmap", "envmap": "bright"}]}
+    capture = SimpleNamespace(root=tmp_path, sequence_names=lambda: sorted(sequences),
+                              sequence=lambda name: SimpleNamespace(lights=sequences[name]))
+    assert auto_reg_max(capture, "relight_train") == pytest.approx(1.5)  # the training map, times its scale
+    assert auto_reg_max(capture, None) == pytest.approx(4.0)  # unknown: every sequence's lights
+    sequences["relight_train"] = [{"pattern": "flat"}]
+    assert auto_reg_max(capture, "relight_train") == 1.0  # no map to take a range from
+
+
 def test_observed_masks_leave_out_render_pixels_nearer_than_min_depth():
     """A view whose render has a splat at the lens (depth 2 cm) over its left half: with
     min_depth_m = 0.1 those pixels leave every part mask and count in near_fraction; with 0 they stay."""

@@ -80,8 +80,9 @@ class InverseInputs:
         return cls(Path(meshes), Path(uvmaps), Path(model), Path(sync_meshes), Path(sync_uvmaps), character)
 
     def open(self, capture, sequence, sync_sequence):
-        """(wild data, studio data, model, input artifacts, source files: the lone npz and character files
-        read) (:class:`~egorelight_cli.stages.envmap_inverse.EgoAvatarData`)."""
+        """(wild data, studio data, model, the model's training sequence (None if unrecorded), input
+        artifacts, source files: the lone npz and character files read)
+        (:class:`~egorelight_cli.stages.envmap_inverse.EgoAvatarData`)."""
         from egorelight_cli.artifacts import open_artifact
         from egorelight_cli.stages.character_commands import character_sources, load_character
         from egorelight_cli.stages.envmap_inverse import EgoAvatarData
@@ -100,7 +101,7 @@ class InverseInputs:
                                       int(net["attention_level"]), int(net["rays"])))
             artifacts += [meshes_artifact, uvmaps]
             sources += [] if meshes_artifact else [meshes_path]
-        return data[0], data[1], model, [a for a in artifacts if a is not None], sources
+        return data[0], data[1], model, net["sequence"], [a for a in artifacts if a is not None], sources
 
 
 @dataclass(frozen=True)
@@ -123,10 +124,10 @@ class EnvmapCommands:
 
             inverse_settings = InverseSettings.from_config(self.run.config())
             sync_sequence = capture.sequence(sync_name)
-            wild, studio, model, artifacts, sources = inverse.open(capture, sequence, sync_sequence)
+            wild, studio, model, trained_on, artifacts, sources = inverse.open(capture, sequence, sync_sequence)
             inputs += artifacts
             options["sync_sequence"] = sync_sequence.name
-            loaded = (wild, studio, model, inverse_settings)
+            loaded = (wild, studio, model, trained_on, inverse_settings)
         if self.run.up_to_date(out, "envmap", inputs, sources, options):
             return Path(out)
         from egorelight_cli.stages import envmap as em
@@ -137,7 +138,7 @@ class EnvmapCommands:
         if loaded is not None:
             from egorelight_cli.stages import envmap_inverse as ei
 
-            wild, studio, _, inverse_settings = loaded
+            wild, studio, _, _, inverse_settings = loaded
             for data in (wild, studio):
                 for role in inverse_settings.roles:
                     if role not in data.sequence.ego_roles or role not in calibration.ego_cameras:
@@ -240,11 +241,10 @@ def _inverse(writer: ArtifactWriter, cfg: Config, capture, calibration, result, 
     import time
 
     from egorelight_cli.io.images import write_image
-    from egorelight_cli.render.lighting import CaptureEnvmaps
     from egorelight_cli.stages import envmap_inverse as ei
 
-    wild, studio, model, settings = loaded
-    reg_max = settings.reg_max if settings.reg_max is not None else ei.auto_reg_max(CaptureEnvmaps(capture.root))
+    wild, studio, model, trained_on, settings = loaded
+    reg_max = settings.reg_max if settings.reg_max is not None else ei.auto_reg_max(capture, trained_on)
     started = time.perf_counter()
     with torch.enable_grad():
         inverse = ei.inverse_render(model, wild, studio, calibration, result.inpainted, settings, int(cfg.seed),

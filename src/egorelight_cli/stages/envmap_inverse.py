@@ -501,10 +501,20 @@ def inverse_render(model: rl.RelightModel, wild: EgoAvatarData, studio: EgoAvata
                          settings.image_pass)
 
 
-def auto_reg_max(envmaps) -> float:
-    """The 99.9th percentile of the radiance of the capture's environment maps (the light the
-    avatar was trained under), channel maximum per texel; 1.0 when there are none."""
-    values = [np.asarray(envmaps[name], np.float32).max(axis=-1).reshape(-1) for name in envmaps]
+def auto_reg_max(capture, trained_on: str | None = None) -> float:
+    """The 99.9th percentile of the radiance the avatar was trained under: the environment maps the
+    light entries of ``capture``'s sequence ``trained_on`` name (the relight model's training
+    sequence; every sequence's when None or not in the capture), each times its entry's ``scale``,
+    channel maximum per texel; 1.0 when there are none."""
+    from egorelight_cli.render.lighting import CaptureEnvmaps
+
+    names = capture.sequence_names()
+    names = [trained_on] if trained_on in names else names
+    envmaps = CaptureEnvmaps(capture.root)
+    lights = {(str(entry["envmap"]), float(entry.get("scale", 1.0))) for name in names
+              for entry in capture.sequence(name).lights
+              if entry.get("pattern") == "envmap" and str(entry.get("envmap")) in envmaps}
+    values = [scale * np.asarray(envmaps[name], np.float32).max(axis=-1).reshape(-1) for name, scale in sorted(lights)]
     if not values:
         return 1.0
     level = float(np.percentile(np.concatenate(values), 99.9))

@@ -327,15 +327,16 @@ def scored_metrics(scores: RelightScores, data: RelightData, patterns: np.ndarra
 
 
 def load_relight_model(path: Path) -> tuple[rl.RelightModel, dict, Artifact]:
-    """(model in eval mode, its data settings ``{"uv_resolution", "attention_level", "rays"}``,
-    artifact) of a ``train relight`` model."""
+    """(model in eval mode, its data settings ``{"uv_resolution", "attention_level", "rays"}`` and
+    training sequence ``"sequence"`` (None for a model that does not record it), artifact) of a
+    ``train relight`` model."""
     from egorelight_cli.io.model import read_model
 
     artifact = open_artifact(path, kind="model")
     payload = read_model(artifact.root, stage=rl.MODEL_STAGE)
     arch = payload.architecture
     net = {"uv_resolution": payload.extra["uv_resolution"], "attention_level": arch["attention_level"],
-           "rays": arch["rays"]}
+           "rays": arch["rays"], "sequence": payload.extra.get("sequence")}
     model = rl.RelightModel.from_architecture(arch)
     try:
         model.load_state_dict(payload.state_dict)
