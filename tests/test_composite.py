@@ -189,6 +189,24 @@ def test_place_option_and_settings_are_checked():
             cp.parse_place(bad)
 
 
+def test_auto_eye_height_takes_the_studio_head_poses_only():
+    from types import SimpleNamespace
+
+    def poses(height: float, n: int = 5):
+        T = np.repeat(np.eye(4)[None], n, axis=0)
+        T[:, 1, 3] = height
+        return SimpleNamespace(T_world_from_hmd=T, valid=np.ones(n, bool))
+
+    head_poses = {"ego_train": poses(1.62), "test": poses(1.70), "wild": poses(-0.3, 50)}  # wild: a tracker's frame
+    calibration = SimpleNamespace(head_poses=head_poses, source=None,
+                                  head_poses_in_studio_world=lambda name: name != "wild")
+    assert cp.eye_height(calibration, exclude="test") == pytest.approx(1.62)
+    assert cp.eye_height(calibration, exclude="wild") == pytest.approx(1.66)
+    with pytest.raises(EgorelightError, match="eye_height_m"):
+        cp.eye_height(SimpleNamespace(head_poses={"wild": poses(-0.3)}, source=None,
+                                      head_poses_in_studio_world=lambda name: False), exclude="test")
+
+
 @pytest.fixture(scope="module")
 def avatar(tiny_capture, skinned_meshes, oracle_calibration_artifact, tmp_path_factory):
     """A tiny geolift model, uvmaps of test / wild / ego_train / relight_train, a (briefly) trained

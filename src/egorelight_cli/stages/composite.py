@@ -166,8 +166,10 @@ def place_avatar(vertices: np.ndarray, left_hip: np.ndarray, right_hip: np.ndarr
 
 def eye_height(calibration, exclude: str) -> float:
     """Median HMD height (m) over the valid head poses of the calibration's sequences other than
-    ``exclude`` (studio sequences, floor at y = 0): the wearer's standing eye height."""
-    heights = [p.T_world_from_hmd[p.valid, 1, 3] for name, p in calibration.head_poses.items() if name != exclude]
+    ``exclude`` whose poses lie in the studio's world (floor at y = 0; a headset tracker's own frame,
+    as in ``wild``, has another origin): the wearer's standing eye height."""
+    heights = [p.T_world_from_hmd[p.valid, 1, 3] for name, p in calibration.head_poses.items()
+               if name != exclude and calibration.head_poses_in_studio_world(name)]
     heights = np.concatenate(heights) if heights else np.zeros(0)
     if not heights.size:
         raise EgorelightError("placement.eye_height_m: auto needs head poses of a studio sequence in the calibration "
