@@ -169,3 +169,14 @@ def test_config_pickles_to_an_equal_frozen_config():
     assert (back.stage, back.version, back.preset) == ("synth", 3, "cpu")
     with pytest.raises(AttributeError, match="frozen"):
         back.d = 2
+
+
+@pytest.mark.parametrize("stage,item,expected", [
+    ("calibrate", "handeye.on_missing=abort", "one of warn, error"),          # was taken for warn
+    ("calibrate", "head.corner_refinement=foo", "one of edges, contour"),    # was a KeyError deep in detection
+    ("relight", "train.validation_fraction=1.0", "below 1"),
+    ("geolift", "train.validation_fraction=0", "above 0"),
+])
+def test_shipped_stages_check_their_enumerations_and_fractions(stage, item, expected):
+    with pytest.raises(EgorelightError, match=expected):
+        resolve_config(stage, "cpu", [item])
