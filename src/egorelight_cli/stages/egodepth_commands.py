@@ -211,6 +211,8 @@ class EgodepthCommands:
                                       out)
             _predict_sequence(writer, cfg, capture, calibration, sequence, roles, frames, posed, method, model, masks,
                               device, prior, frame_range, extra or {})
+            if model is None:  # a classical method (OpenCV SGBM) runs on the CPU whatever --device says
+                writer.runtime["device"] = "cpu"
 
         return self.run.produce(out, "pointcloud", write, inputs=inputs, source_files=sources)
 
