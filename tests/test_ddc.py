@@ -95,7 +95,6 @@ def _imported(path: str) -> Character:
 
 
 def _character(ddc_example: Path) -> Character:
-    pytest.importorskip("egorelight_cli.geometry.embedded_graph")
     return _imported(str(ddc_example / "ddc.character"))
 
 
@@ -492,7 +491,6 @@ def test_character_export_reproduces_files(tmp_path, ddc_example):
 
 
 def test_character_export_with_another_name_and_lf_input(tmp_path, ddc_example):
-    pytest.importorskip("egorelight_cli.geometry.embedded_graph")
     src = tmp_path / "lf"
     src.mkdir()
     for name in FILES + ("ddc.character", "ddc.obj.mtl", "ddc_graph.obj.mtl"):

@@ -13,9 +13,7 @@ from egorelight_cli.geometry.embedded_graph import build_embedded_graph, pose_ch
 from egorelight_cli.geometry.skeleton import forward_kinematics, keypoint_positions
 from egorelight_cli.structures.skeleton import REVOLUTE
 
-ddc_io = pytest.importorskip("egorelight_cli.io.ddc", reason="the DDC importer (io/ddc.py) is not there yet")
-if not hasattr(ddc_io, "read_ddc_character"):
-    pytest.skip("io/ddc.py has no read_ddc_character yet", allow_module_level=True)
+from egorelight_cli.io import ddc as ddc_io
 
 
 DDC_EXAMPLE = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "ddc_example"

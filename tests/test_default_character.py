@@ -25,7 +25,7 @@ from egorelight_cli.stages.character import SEGMENTATION_NAMES
 from egorelight_cli.structures.keypoints import FINGERS, KEYPOINT_NAMES
 from egorelight_cli.structures.skeleton import PRISMATIC
 
-fk = pytest.importorskip("egorelight_cli.geometry.skeleton")
+from egorelight_cli.geometry import skeleton as fk
 
 MIRROR = np.array([-1.0, 1.0, 1.0])
 
@@ -327,7 +327,7 @@ def test_joint_sign_conventions(character, rest_keypoints):
 
 
 def test_posed_mesh_is_sane(character):
-    eg = pytest.importorskip("egorelight_cli.geometry.embedded_graph")
+    from egorelight_cli.geometry import embedded_graph as eg
     sk = character.skeleton
     rng = np.random.default_rng(1)
     lo, hi = sk.dof_limits[6:].T
