@@ -150,6 +150,18 @@ def test_report_rewrites_atomically_and_elsewhere(subject, tmp_path, run):
     for link in parser.hrefs + parser.srcs:
         if not link.startswith("#"):
             assert (elsewhere / unquote(link)).exists(), link
+    # a folder that holds anything else is not replaced (it used to be emptied): the user's files,
+    # an artifact, the subject's own parent
+    theirs = tmp_path / "theirs"
+    (theirs / "docs").mkdir(parents=True)
+    (theirs / "docs" / "thesis.tex").write_text("x")
+    for folder in (theirs, subject / "keypoints" / "test", subject, subject.parent):
+        before = sorted(str(p) for p in folder.rglob("*"))
+        result = run("report", subject, "--out", folder)
+        assert result.returncode == 2 and "not a report folder" in result.stderr, (folder, result.stderr)
+        assert result.stderr.count("\n") == 1 and sorted(str(p) for p in folder.rglob("*")) == before
+    (tmp_path / "empty_folder").mkdir()
+    assert run("report", subject, "--out", tmp_path / "empty_folder").returncode == 0  # empty: fine
 
 
 def test_report_shows_a_broken_artifact_instead_of_failing(subject, run):

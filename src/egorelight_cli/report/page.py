@@ -349,6 +349,12 @@ def _votes(better: int, worse: int) -> str:
         f'<span class="worse">{worse} not better</span>' if worse else "")
 
 
+def is_report_folder(folder: Path) -> bool:
+    """Whether ``folder`` (a directory) may be replaced by a report: it is empty or holds only what
+    a report writes (``index.html`` and ``assets/``)."""
+    return all(entry.name in (INDEX, ASSETS) for entry in folder.iterdir())
+
+
 def build_report(subject: str | Path, out: str | Path | None = None) -> Path:
     """Write ``<out>/index.html`` (default ``<subject>/report``) and its ``assets/`` atomically
     from the artifacts under ``subject``; returns the page's path."""
@@ -358,6 +364,9 @@ def build_report(subject: str | Path, out: str | Path | None = None) -> Path:
     out = Path(out) if out is not None else subject / "report"
     if out.exists() and not out.is_dir():
         raise EgorelightError("report output exists and is not a directory", out)
+    if out.is_dir() and not is_report_folder(out):
+        raise EgorelightError(f"exists and is not a report folder (only {INDEX} and {ASSETS}/): not replacing it",
+                              out)
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
         remove_stale_temporaries(out)
