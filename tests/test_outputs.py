@@ -128,6 +128,18 @@ def test_only_a_previous_artifact_of_the_same_kind_is_replaced(run, inputs):
     assert run(*IK, "--in", inputs / "k.npz", "--out", empty).returncode == 0  # an empty folder holds nothing to lose
 
 
+def test_a_model_of_another_stage_is_not_replaced(run, inputs):
+    animate_model = inputs / "animate_model"
+    with ArtifactWriter(animate_model, kind="model", stage="animate", config={}) as writer:
+        writer.save_json("notes.json", {"trained": "for days"})
+    before = tree_digest(animate_model)
+    assert_refused(run("train", "ik", "--preset", "tiny", "--out", animate_model), "animate model", "ik model")
+    assert tree_digest(animate_model) == before
+    ik_model = inputs / "ik_model"
+    assert run("train", "ik", "--preset", "tiny", "--out", ik_model).returncode == 0
+    assert run("train", "ik", "--preset", "tiny", "--out", ik_model, "--force").returncode == 0  # its own: replaced
+
+
 def test_character_export_and_preview_outputs_are_checked(run, inputs):
     assert run("character", "default", "--out", inputs / "ch").returncode == 0
     before = tree_digest(inputs / "ch")

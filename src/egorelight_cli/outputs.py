@@ -57,8 +57,9 @@ def manifest_kind(manifest_path: Path) -> str | None:
     return kind.removeprefix(KIND_PREFIX)
 
 
-def _check_previous_artifact(out: Path, kind: str, single_file: bool) -> None:
-    """``out`` may be replaced only when it is nothing yet or a previous artifact of ``kind``."""
+def _check_previous_artifact(out: Path, kind: str, single_file: bool, stage: str | None = None) -> None:
+    """``out`` may be replaced only when it is nothing yet or a previous artifact of ``kind`` (for a
+    ``model``, one that ``stage`` trained: every stage's model is of that one kind)."""
     if single_file:
         sidecar = out.with_name(out.name + SIDECAR_SUFFIX)
         if out.is_dir():
@@ -80,6 +81,11 @@ def _check_previous_artifact(out: Path, kind: str, single_file: bool) -> None:
     if found != kind:
         raise EgorelightError(f"--out is an existing {KIND_PREFIX}{found} artifact and this stage writes "
                               f"{KIND_PREFIX}{kind}; not replacing it", out)
+    if kind == "model" and stage is not None:
+        trained_by = json.loads(manifest.read_bytes()).get("stage")
+        if trained_by != stage:
+            raise EgorelightError(f"--out is an existing {trained_by} model and this trains a {stage} model; "
+                                  "not replacing it", out)
     if not single_file:
         _check_only_listed_files(out, manifest)
 
@@ -114,12 +120,13 @@ def _check_writable(out: Path) -> None:
         raise EgorelightError(f"cannot write the output: {folder} is not writable", out)
 
 
-def check_output(out: str | Path, kind: str, inputs: Iterable[str | Path] = ()) -> None:
+def check_output(out: str | Path, kind: str, inputs: Iterable[str | Path] = (), stage: str | None = None) -> None:
     """Refuse (:class:`EgorelightError`) an ``--out`` a stage writing an artifact of ``kind`` must
     not replace (see the module docstring); ``inputs`` are every file or artifact the stage reads
-    (for a single-file artifact, its payload and its sidecar)."""
+    (for a single-file artifact, its payload and its sidecar); ``stage``: the stage writing it (a
+    model of another stage is not replaced)."""
     check_output_location(out, inputs)
-    _check_previous_artifact(Path(out), kind, is_single_file_output(out))
+    _check_previous_artifact(Path(out), kind, is_single_file_output(out), stage)
 
 
 def check_output_location(out: str | Path, inputs: Iterable[str | Path] = ()) -> None:

@@ -169,7 +169,8 @@ class StageRun:
         apply_threads(threads)  # before the stage's work (every command works inside ``write``)
         config = self.config()
         device = self.compute_device()
-        check_output(out, kind, [p for a in inputs for p in (a.path, a.manifest_path)] + list(source_files))
+        check_output(out, kind, [p for a in inputs for p in (a.path, a.manifest_path)] + list(source_files),
+                     self.stage)
         if self.up_to_date(out, kind, inputs, source_files, options):
             return out
         group = self._join_process_group(device)
