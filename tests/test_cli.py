@@ -55,9 +55,11 @@ def test_unknown_set_key_is_one_line(tmp_path):
     assert_one_line_error(result, "unknown config key 'no_such_key'", "target_vertices")
 
 
-def test_usage_error_exit_2():
-    result = run("inspect")
-    assert result.returncode == 2 and "Missing argument" in result.stderr
+def test_usage_errors_are_one_line_exit_2():
+    assert_one_line_error(run("inspect"), "Missing argument", "egorelight inspect --help")
+    assert_one_line_error(run("ik", "--in", "k.npz"), "Missing option '--out'", "egorelight ik --help")
+    assert_one_line_error(run("egodepth", "--method", "foo", "--out", "x"), "'foo' is not one of")
+    assert_one_line_error(run("no-such-command"), "No such command")
 
 
 def test_version():
