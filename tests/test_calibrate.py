@@ -242,6 +242,28 @@ def test_hand_eye_without_head_poses_is_an_error(tiny_capture, cfg):
         calibrate_hand_eye(capture, seq, -2, {}, {}, cfg.handeye)
 
 
+@pytest.mark.parametrize("change, says", [
+    ({"dictionary": "DICT_9X9_7"}, "unknown ArUco dictionary"),
+    ({"squares_x": None}, "lacks 'squares_x'"),
+    ({"squares_x": 0}, "at least 2x2 squares"),
+    ({"marker_length_m": -0.1}, "0 < marker_length_m"),
+    ({"dictionary": "DICT_4X4_50", "squares_x": 20, "squares_y": 20}, "too few"),
+])
+def test_a_bad_board_description_is_an_error_naming_board_json(tiny_capture, tmp_path, cfg, change, says):
+    """A hand-written rig/board.json (OpenCV raised AttributeError / SystemError: internal errors)."""
+    fake = tmp_path / "capture"
+    shutil.copytree(tiny_capture / "rig", fake / "rig")
+    board = json.loads((fake / "rig" / "board.json").read_text())
+    board.update(change)
+    board = {k: v for k, v in board.items() if v is not None}
+    (fake / "rig" / "board.json").write_text(json.dumps(board))
+    (fake / "sequences").mkdir()
+    (fake / "sequences" / "handeye").symlink_to(tiny_capture / "sequences" / "handeye")
+    with pytest.raises(EgorelightError, match=says) as raised:
+        calibrate_hand_eye(Capture(fake), Capture(fake).sequence("handeye"), -2, {}, {}, cfg.handeye)
+    assert "board.json" in str(raised.value)
+
+
 def test_sequence_without_the_needed_stream_is_an_error(tiny_capture, cfg):
     seq = Capture(tiny_capture).sequence("relight_train")
     with pytest.raises(EgorelightError, match="has no ego stream"):

@@ -16,8 +16,12 @@ HMD_MARKER_DICTIONARY = "DICT_4X4_50"
 
 
 def aruco_dictionary(name: str = HMD_MARKER_DICTIONARY):
-    """An OpenCV predefined ArUco dictionary by name (``DICT_4X4_50``, ...)."""
-    return cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name))
+    """An OpenCV predefined ArUco dictionary by name (``DICT_4X4_50``, ...); a ValueError for
+    another name."""
+    value = getattr(cv2.aruco, str(name), None) if str(name).startswith("DICT_") else None
+    if not isinstance(value, int):
+        raise ValueError(f"unknown ArUco dictionary {name!r} (OpenCV's predefined DICT_..., e.g. DICT_4X4_50)")
+    return cv2.aruco.getPredefinedDictionary(value)
 
 
 def grey(image: np.ndarray) -> np.ndarray:
@@ -32,14 +36,26 @@ def _field(spec, name: str):
 def charuco_board(spec):
     """A ``cv2.aruco.CharucoBoard`` from a board description (``rig/board.json`` dict or a config
     section with ``squares_x``, ``squares_y``, ``square_length_m``, ``marker_length_m`` and
-    optionally ``dictionary``/``legacy_pattern``)."""
+    optionally ``dictionary``/``legacy_pattern``); a ValueError naming what is wrong with it."""
     try:
         name = _field(spec, "dictionary")
     except (KeyError, AttributeError):
         name = "DICT_5X5_100"
-    board = cv2.aruco.CharucoBoard((int(_field(spec, "squares_x")), int(_field(spec, "squares_y"))),
-                                   float(_field(spec, "square_length_m")), float(_field(spec, "marker_length_m")),
-                                   aruco_dictionary(name))
+    try:
+        squares = int(_field(spec, "squares_x")), int(_field(spec, "squares_y"))
+        square, marker = float(_field(spec, "square_length_m")), float(_field(spec, "marker_length_m"))
+    except (KeyError, AttributeError) as exc:
+        raise ValueError(f"the board description lacks {exc}") from None
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"the board description has a field that is not a number ({exc})") from None
+    if min(squares) < 2 or not 0 < marker < square:
+        raise ValueError(f"the board needs at least 2x2 squares and 0 < marker_length_m < square_length_m, got "
+                         f"{squares[0]}x{squares[1]} squares of {square} m with {marker} m markers")
+    dictionary = aruco_dictionary(name)
+    if (squares[0] * squares[1]) // 2 > dictionary.bytesList.shape[0]:
+        raise ValueError(f"{name} holds {dictionary.bytesList.shape[0]} markers, too few for "
+                         f"{squares[0]}x{squares[1]} squares")
+    board = cv2.aruco.CharucoBoard(squares, square, marker, dictionary)
     try:
         board.setLegacyPattern(bool(_field(spec, "legacy_pattern")))
     except (KeyError, AttributeError):

@@ -329,7 +329,10 @@ def calibrate_hand_eye(capture: Capture, seq: SequenceInfo, stream_offset: int, 
                        marker_obs: dict[int, list[MarkerObservation]], cfg) -> HandEyeResult:
     """The whole hand-eye step (``cfg``: the ``handeye`` section); ``heads``: valid head poses by
     studio frame id of ``seq``."""
-    board = charuco_board(capture.board)
+    try:
+        board = charuco_board(capture.board)
+    except ValueError as exc:
+        raise EgorelightError(str(exc), capture.root / "rig" / "board.json") from None
     cameras = capture.ego_cameras
     obs = detect_boards(seq, cameras, board, stream_offset, cfg)
     if not obs:

@@ -49,6 +49,7 @@ class MarkerLayout:
             doc = capture.hmd["markers"]
             corners = {int(m["id"]): np.asarray(m["corners_hmd"], np.float64) for m in doc["markers"]}
             dictionary = str(doc.get("dictionary", "DICT_4X4_50"))
+            aruco_dictionary(dictionary)
         except (KeyError, TypeError, ValueError) as exc:
             raise EgorelightError(f"HMD description has no usable marker layout ({type(exc).__name__}: {exc})",
                                   path) from None

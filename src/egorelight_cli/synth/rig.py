@@ -18,6 +18,7 @@ import math
 import numpy as np
 
 from egorelight_cli.geometry.cameras import Camera, look_at
+from egorelight_cli.errors import EgorelightError
 from egorelight_cli.geometry.markers import charuco_board
 from egorelight_cli.render.lightstage import LightStage
 from egorelight_cli.synth.textures import TexturedMesh, grid_quad
@@ -100,7 +101,10 @@ def board_json(cfg) -> dict:
 
 def board_mesh(cfg) -> TexturedMesh:
     """The board as a textured mesh in the board frame (printed front, grey backing)."""
-    board = charuco_board(cfg)
+    try:
+        board = charuco_board(cfg)
+    except ValueError as exc:
+        raise EgorelightError(f"config section 'board': {exc}") from None
     width = cfg.squares_x * cfg.square_length_m
     height = cfg.squares_y * cfg.square_length_m
     cols, rows = round(width * BOARD_TEXELS_PER_M), round(height * BOARD_TEXELS_PER_M)
