@@ -76,7 +76,7 @@ endif
 
 $(PREVIEWS)/character.png: $(CHARACTER)
 	@mkdir -p $(PREVIEWS)
-	$(EGO) $(EGOFLAGS) character preview $(SUBJECT)/character --out $@
+	$(EGO) $(EGOFLAGS) character preview $(SUBJECT)/character --force --out $@
 
 # Per-sequence artifacts are pattern rules: `make subjects/demo/meshes/wild/manifest.json` builds
 # the chain for any sequence. Ground-truth metrics are added when the capture carries groundtruth/.

@@ -145,6 +145,13 @@ def test_character_export_and_preview_outputs_are_checked(run, inputs):
     before = tree_digest(inputs / "ch")
     assert_refused(run("character", "export-ddc", inputs / "ch", "--out", inputs / "ch"), "is the input")
     assert_refused(run("character", "preview", inputs / "ch", "--out", inputs / "ch" / "p.png"), "inside the input")
+    assert_refused(run("character", "preview", inputs / "ch", "--out", inputs / "previews" / "char"), "image file")
+    mine = inputs / "mine.png"
+    mine.write_bytes(b"a photo")  # an image the tool did not write is kept unless --force says replace it
+    assert_refused(run("character", "preview", inputs / "ch", "--out", mine), "--force")
+    assert mine.read_bytes() == b"a photo"
+    assert run("character", "preview", inputs / "ch", "--out", mine, "--force").returncode == 0
+    assert mine.read_bytes()[1:4] == b"PNG"
     assert tree_digest(inputs / "ch") == before
     (inputs / "photos").mkdir()
     (inputs / "photos" / "a.jpg").write_text("x")

@@ -111,6 +111,10 @@ def _character_paths(spec: str | Path, artifact: Artifact | None) -> list[Path]:
     return [artifact.path, artifact.manifest_path] if artifact is not None else character_sources(str(spec), None)
 
 
+#: image files ``character preview`` writes
+PREVIEW_SUFFIXES = (".png", ".jpg", ".jpeg")
+
+
 @dataclass(frozen=True)
 class CharacterCommands:
     """The ``character`` sub-commands over one :class:`StageRun` (global options)."""
@@ -192,6 +196,10 @@ class CharacterCommands:
 
         character, artifact = load_character(character_path)
         check_output_location(out, _character_paths(character_path, artifact))
+        if out.suffix.lower() not in PREVIEW_SUFFIXES:
+            raise EgorelightError(f"--out must name an image file ({', '.join(PREVIEW_SUFFIXES)})", out)
+        if out.exists() and not self.run.force:
+            raise EgorelightError("--out exists; not replacing it (--force replaces it)", out)
         cfg = self.run.config()
         image = character_preview_image(character, width=cfg.preview_width, height=cfg.preview_height)
         out.parent.mkdir(parents=True, exist_ok=True)
