@@ -276,3 +276,7 @@ def test_bad_inputs_give_one_line_errors(animate_inputs, tmp_path, capsys):
     _one_line_error(capsys, _run(*base, "--no-depth", "--pointcloud", tmp_path / "late.npz", "--out", tmp_path / "e"),
                     "--no-depth reads no point cloud", "late.npz")
     assert not (tmp_path / "e").exists()
+    # a sequence the capture lacks (a typo) is an error, not a run without ground truth
+    _one_line_error(capsys, _run(*base, "--pointcloud", animate_inputs["cloud"], "--capture", animate_inputs["capture"],
+                                 "--seq", "tset", "--out", tmp_path / "f"), "no sequence 'tset'")
+    assert not (tmp_path / "f").exists()

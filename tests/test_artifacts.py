@@ -149,3 +149,20 @@ def test_stage_run_skips_when_up_to_date_and_force_reruns(tmp_path, monkeypatch)
     assert calls == [2.0, 2.0, 3.0]
     key = open_artifact(out).manifest["cache_key"]
     assert is_up_to_date(out, key, "motion") and not is_up_to_date(out, key, "keypoints")
+
+
+def test_check_sequence_names_an_input_made_for_another_sequence(tmp_path):
+    from egorelight_cli.artifacts import check_sequence
+
+    with ArtifactWriter(tmp_path / "cloud", kind="pointcloud", stage="egodepth",
+                        config={"options": {"sequence": "wild"}}) as writer:
+        writer.save_json("info.json", {})
+    cloud = open_artifact(tmp_path / "cloud")
+    check_sequence(cloud, "wild")
+    check_sequence(None, "test")
+    with pytest.raises(EgorelightError, match="made for sequence 'wild', not 'test'") as raised:
+        check_sequence(cloud, "test")
+    assert str(tmp_path / "cloud") in str(raised.value)
+    with ArtifactWriter(tmp_path / "motion", kind="motion", stage="ik", config={}) as writer:
+        writer.save_json("info.json", {})
+    check_sequence(open_artifact(tmp_path / "motion"), "test")  # records no sequence: nothing to check

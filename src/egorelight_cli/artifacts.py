@@ -290,6 +290,18 @@ def resolve_payload(path: str | Path, kind: str, payload: str, what: str):
 TEMPORARY_TAGS = ("tmp", "old")  # work directory of a writer; previous artifact being replaced
 
 
+def check_sequence(artifact: Artifact | None, sequence: str) -> None:
+    """An EgorelightError when ``artifact`` was made for another sequence than ``sequence`` (its
+    manifest's ``config.options.sequence``): inputs of two sequences mixed up. Nothing to check for
+    an artifact that records none (a motion, a lone npz) or for None."""
+    if artifact is None:
+        return
+    recorded = ((artifact.manifest.get("config") or {}).get("options") or {}).get("sequence")
+    if recorded is not None and str(recorded) != str(sequence):
+        raise EgorelightError(f"was made for sequence {recorded!r}, not {sequence!r} (inputs of two sequences "
+                              "mixed up?)", artifact.path)
+
+
 def temporary_sibling(path: str | Path, tag: str = "tmp", suffix: str = "") -> Path:
     """A hidden sibling ``.<name>.<tag>-<pid>-<random><suffix>`` of ``path`` for atomic writes;
     the pid lets :func:`remove_stale_temporaries` tell a killed run's leftovers from a live one's."""

@@ -298,4 +298,7 @@ def open_capture(path: str | Path, sequences: Sequence[str] | None = None) -> tu
         artifact.verify(only=read_by_stage)
     if artifact.single_file:
         raise EgorelightError("a capture is a directory artifact", path)
-    return Capture(artifact.root), artifact
+    capture = Capture(artifact.root)
+    for name in sequences or ():
+        capture.sequence(name)  # a sequence the capture lacks is an error that lists the ones it has
+    return capture, artifact

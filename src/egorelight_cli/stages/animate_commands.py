@@ -35,7 +35,7 @@ from typing import TYPE_CHECKING, Sequence
 import numpy as np
 
 from egorelight_cli import console
-from egorelight_cli.artifacts import Artifact, ArtifactWriter, open_artifact, resolve_payload
+from egorelight_cli.artifacts import Artifact, ArtifactWriter, check_sequence, open_artifact, resolve_payload
 from egorelight_cli.config import Config
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.io.capture import Capture, open_capture, read_reconstructions
@@ -243,6 +243,8 @@ class AnimateCommands:
         (motion_artifact,), cloud_artifact, lone = _motion_and_cloud_artifacts([motion_path], pointcloud_path, no_depth)
         model_artifact = open_artifact(model_path, kind="model")
         capture, capture_artifact = open_capture(capture_path, [sequence]) if capture_path is not None else (None, None)
+        if capture is not None:  # scored against --seq's truth: the cloud must be of that sequence
+            check_sequence(cloud_artifact, sequence)
         calibration = calibration_artifact = None
         if calibration_path is not None:
             from egorelight_cli.io.calibration import open_calibration

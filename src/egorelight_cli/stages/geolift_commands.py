@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from egorelight_cli import console
-from egorelight_cli.artifacts import Artifact, ArtifactWriter, open_artifact
+from egorelight_cli.artifacts import Artifact, ArtifactWriter, check_sequence, open_artifact
 from egorelight_cli.config import Config
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.io.capture import Capture, frame_file, open_capture
@@ -117,6 +117,7 @@ class GeoliftCommands:
             sequence = capture.sequence(name)
             sequence.require_stream("recon")
             meshes, meshes_artifact = load_character_meshes(meshes_path, character)
+            check_sequence(meshes_artifact, name)
             frames = sequence.flat_lit(np.intersect1d(meshes.frame_ids, sequence.content_frame_ids))
             if len(frames) < 2:
                 raise EgorelightError(f"the meshes cover {len(frames)} flat-lit frame(s) of sequence {name!r}; "
@@ -188,6 +189,7 @@ class GeoliftCommands:
         if capture_path is not None:
             capture, capture_artifact = open_capture(capture_path)
             sequence = capture.sequence(seq)
+            check_sequence(meshes_artifact, seq)  # the lighting features are the sequence's
         inputs = [a for a in (character_artifact, meshes_artifact, model_artifact, capture_artifact) if a is not None]
         sources = character_sources(character_spec, character_artifact) + ([] if meshes_artifact else [meshes_path])
         self.run.compute_device()

@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from egorelight_cli import console
-from egorelight_cli.artifacts import Artifact, ArtifactWriter, open_artifact
+from egorelight_cli.artifacts import Artifact, ArtifactWriter, check_sequence, open_artifact
 from egorelight_cli.config import Config
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.io.capture import Capture, frame_file, open_capture
@@ -362,6 +362,8 @@ class RelightCommands:
         sequence = capture.sequence(seq)
         meshes, meshes_artifact = load_character_meshes(meshes_path, character)
         uvmaps = open_artifact(uvmaps_path, kind="uvmaps")
+        for artifact in (meshes_artifact, uvmaps):
+            check_sequence(artifact, seq)
         data = RelightData(capture, sequence, meshes, uvmaps, character, int(net["uv_resolution"]),
                            int(net["attention_level"]), int(net["rays"]), lighting)
         frames = _lit_frames(sequence, meshes, uvmaps, None if lighting is not None else patterns)
