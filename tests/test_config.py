@@ -180,3 +180,9 @@ def test_config_pickles_to_an_equal_frozen_config():
 def test_shipped_stages_check_their_enumerations_and_fractions(stage, item, expected):
     with pytest.raises(EgorelightError, match=expected):
         resolve_config(stage, "cpu", [item])
+
+
+@pytest.mark.parametrize("stage", ["egodepth", "egopose", "animate", "relight"])
+def test_training_steps_must_be_positive(stage):
+    with pytest.raises(EgorelightError, match="'train.steps' must be at least 1"):
+        resolve_config(stage, "cpu", ["train.steps=-1"])
