@@ -64,3 +64,22 @@ def test_malformed_files(tmp_path):
     (tmp_path / "calibration.json").write_text("{}")
     with pytest.raises(EgorelightError, match="malformed calibration"):
         read_calibration(tmp_path)
+
+
+@pytest.mark.parametrize("edit, says", [
+    (lambda a: a.pop("valid"), "lack valid"),
+    (lambda a: a.update(T_world_from_hmd=a["T_world_from_hmd"][:2]), r"T_world_from_hmd \(2, 4, 4\)"),
+    (lambda a: a.update(valid=a["valid"].astype(np.int64)), "bool valid"),
+])
+def test_malformed_head_poses_are_errors_naming_the_file(tmp_path, edit, says):
+    """A hand-edited head_poses/<seq>.npz (a KeyError or IndexError deep in egopose before)."""
+    from egorelight_cli.io.npz import read_npz, write_npz
+
+    write_calibration(tmp_path, make_calibration())
+    npz = next((tmp_path).rglob("test.npz"))
+    arrays, meta = read_npz(npz, check_finite=False)
+    edit(arrays)
+    write_npz(npz, arrays, meta)
+    with pytest.raises(EgorelightError, match=says) as info:
+        read_calibration(tmp_path)
+    assert "test.npz" in str(info.value)

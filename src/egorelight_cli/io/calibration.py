@@ -94,13 +94,29 @@ def read_calibration(root: str | Path) -> Calibration:
     head_poses = {}
     for seq in sequences:
         npz = root / HEAD_POSES_DIR / f"{seq}.npz"
-        arrays, _ = read_npz(npz, check_finite=False)
-        if not np.all(np.isfinite(arrays["T_world_from_hmd"][arrays["valid"]])):
-            raise EgorelightError("valid head poses hold NaN/inf", npz)
-        head_poses[seq] = HeadPoses(**{k: arrays[k] for k in
-                                       ("T_world_from_hmd", "frame_ids", "valid", "num_markers", "residual_px")})
+        head_poses[seq] = _head_poses(npz)
     return Calibration(ego_cameras=cameras, stream_offsets=offsets, head_poses=head_poses, extras=doc.get("extras", {}),
                        source=path)
+
+
+def _head_poses(npz: Path) -> HeadPoses:
+    """The :class:`HeadPoses` of ``head_poses/<seq>.npz``, its arrays' keys, shapes and types checked."""
+    arrays, _ = read_npz(npz, check_finite=False)
+    keys = ("T_world_from_hmd", "frame_ids", "valid", "num_markers", "residual_px")
+    missing = [k for k in keys if k not in arrays]
+    if missing:
+        raise EgorelightError(f"head poses lack {', '.join(missing)}", npz)
+    T, frame_ids, valid = arrays["T_world_from_hmd"], arrays["frame_ids"], arrays["valid"]
+    n = len(frame_ids)
+    if frame_ids.ndim != 1 or T.shape != (n, 4, 4) or any(arrays[k].shape != (n,) for k in keys[2:]):
+        raise EgorelightError(f"head poses need T_world_from_hmd (T,4,4) and frame_ids, valid, num_markers, "
+                              f"residual_px (T,); got {', '.join(f'{k} {arrays[k].shape}' for k in keys)}", npz)
+    if valid.dtype != np.bool_ or not np.issubdtype(frame_ids.dtype, np.integer):
+        raise EgorelightError(f"head poses need a bool valid and integer frame_ids, got {valid.dtype} and "
+                              f"{frame_ids.dtype}", npz)
+    if not np.all(np.isfinite(T[valid])):
+        raise EgorelightError("valid head poses hold NaN/inf", npz)
+    return HeadPoses(**{k: arrays[k] for k in keys})
 
 
 def posed_ego_camera(capture, calibration: Calibration, role: str, sequence: str, frame_id: int):
