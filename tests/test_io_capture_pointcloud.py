@@ -43,6 +43,25 @@ def test_capture_reader_errors_name_the_file(tiny_capture, tmp_path):
         test.check_frames([9999], test.frame_ids, "requested")
     with pytest.raises(EgorelightError, match="not found"):
         test.read_ego_image("down_left", 9999)
+    # a hand-edited rig or sequence description: the error names the file
+    import json
+    import shutil
+
+    fake = tmp_path / "capture"
+    shutil.copytree(tiny_capture / "rig", fake / "rig")
+    shutil.copy(tiny_capture / "manifest.json", fake / "manifest.json")
+    (fake / "sequences" / "test").mkdir(parents=True)
+    (fake / "sequences" / "test" / "sequence.json").write_text("[1, 2]")
+    hmd = json.loads((fake / "rig" / "hmd.json").read_text())
+    del hmd["cameras"][0]["K"]
+    (fake / "rig" / "hmd.json").write_text(json.dumps(hmd))
+    broken = Capture(fake)
+    with pytest.raises(EgorelightError, match="lacks K") as info:
+        broken.ego_cameras
+    assert str(fake / "rig" / "hmd.json") in str(info.value)
+    with pytest.raises(EgorelightError, match="must be a JSON object") as info:
+        broken.sequence("test")
+    assert "sequence.json" in str(info.value)
 
 
 def test_pointcloud_round_trip_and_validation(tmp_path):

@@ -196,6 +196,8 @@ class Capture:
         for entry in self.hmd.get("cameras", []):
             try:
                 cameras[entry["role"]] = Camera.from_dict(entry, T_cam_from_world=np.eye(4))
+            except EgorelightError as exc:  # e.g. a field missing: said without the file
+                raise EgorelightError(f"invalid HMD camera entry: {exc.message}", self.root / "rig" / "hmd.json") from None
             except (KeyError, ValueError, TypeError) as exc:
                 raise EgorelightError(f"invalid HMD camera entry ({type(exc).__name__}: {exc})",
                                       self.root / "rig" / "hmd.json") from None
@@ -217,6 +219,8 @@ class Capture:
         for entry in doc.get("cameras", []):
             try:
                 cameras[entry["name"]] = Camera.from_dict(entry)
+            except EgorelightError as exc:  # e.g. a field missing: said without the file
+                raise EgorelightError(f"invalid studio camera entry: {exc.message}", self.root / "rig" / "studio_cameras.json") from None
             except (KeyError, ValueError, TypeError) as exc:
                 raise EgorelightError(f"invalid studio camera entry ({type(exc).__name__}: {exc})",
                                       self.root / "rig" / "studio_cameras.json") from None
@@ -246,7 +250,11 @@ class Capture:
         if not (folder / "sequence.json").exists():
             raise EgorelightError(f"capture has no sequence {name!r} (has {', '.join(self.sequence_names()) or 'none'})",
                                   self.root / SEQUENCES)
-        return SequenceInfo(name, folder, read_json_file(folder / "sequence.json", "sequence description"))
+        doc = read_json_file(folder / "sequence.json", "sequence description")
+        if not isinstance(doc, dict):
+            raise EgorelightError(f"sequence description must be a JSON object, got a {type(doc).__name__}",
+                                  folder / "sequence.json")
+        return SequenceInfo(name, folder, doc)
 
     def sequences_with_purpose(self, purpose: str) -> list[SequenceInfo]:
         return [s for s in (self.sequence(n) for n in self.sequence_names()) if s.purpose == purpose]
