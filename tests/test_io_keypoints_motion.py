@@ -116,3 +116,27 @@ def test_motion_validation():
         motion.check_dofs(("a", "b", "c"))
     with pytest.raises(EgorelightError, match="DoF 1 is 'b'"):
         motion.check_dofs(("a", "x"))
+
+
+def test_lone_npz_with_a_bad_fps_text_arrays_or_no_frame_are_errors_naming_the_file(tmp_path):
+    """Hand-made lone payloads: an fps vector or text where numbers belong ended in internal
+    TypeError / ValueError; a motion of no frame in an IndexError inside synth."""
+    T = 3
+    keypoints = dict(xyz=np.zeros((T, 57, 3), np.float32), confidence=np.ones((T, 57), np.float32),
+                     frame_ids=np.arange(T))
+    cases = {
+        "kp_fps.npz": ({**keypoints, "fps": np.array([30.0, 30.0])}, "keypoints", "fps must be one number"),
+        "kp_text.npz": ({**keypoints, "xyz": np.full((T, 57, 3), "a")}, "keypoints", "wrong type"),
+        "motion_fps.npz": ({"theta": np.zeros((T, 5)), "dof_names": np.array(list("abcde")), "frame_ids": np.arange(T),
+                            "fps": np.array([30.0, 30.0])}, "motion", "fps must be one number"),
+        "motion_zero_fps.npz": ({"theta": np.zeros((T, 5)), "dof_names": np.array(list("abcde")),
+                                 "frame_ids": np.arange(T), "fps": np.array(0.0)}, "motion", "positive"),
+        "motion_empty.npz": ({"theta": np.zeros((0, 5)), "dof_names": np.array(list("abcde")),
+                              "frame_ids": np.arange(0), "fps": np.array(30.0)}, "motion", "no frame"),
+    }
+    for name, (arrays, kind, says) in cases.items():
+        write_npz(tmp_path / name, arrays, {"kind": f"egorelight/{kind}", "version": 1})
+        load = load_keypoints if kind == "keypoints" else load_motion
+        with pytest.raises(EgorelightError, match=says) as info:
+            load(tmp_path / name)
+        assert name in str(info.value)

@@ -21,7 +21,7 @@ import numpy as np
 
 from egorelight_cli.artifacts import resolve_payload
 from egorelight_cli.errors import EgorelightError
-from egorelight_cli.io.npz import read_kind_npz, require_arrays, write_npz
+from egorelight_cli.io.npz import payload_fps, read_kind_npz, require_arrays, write_npz
 from egorelight_cli.structures.keypoints import KEYPOINT_NAMES, KEYPOINTS_UNITS, Keypoints
 
 __all__ = ["KEYPOINTS_KIND", "KEYPOINTS_VERSION", "KEYPOINTS_PAYLOAD", "KEYPOINTS_UNITS", "Keypoints",
@@ -37,13 +37,13 @@ def keypoints_from_arrays(arrays: dict[str, np.ndarray], meta: dict | None = Non
     """Build :class:`Keypoints` from payload arrays (errors name ``path``)."""
     require_arrays(arrays, ("xyz", "confidence", "frame_ids"), "keypoints payload", path)
     names = tuple(str(s) for s in arrays["names"]) if "names" in arrays else KEYPOINT_NAMES
-    fps = (meta or {}).get("fps")
-    if fps is None and "fps" in arrays:
-        fps = float(arrays["fps"])
+    fps = payload_fps(arrays, meta, "keypoints payload", path)
     try:
         return Keypoints(arrays["xyz"], arrays["confidence"], arrays["frame_ids"], names, fps)
     except EgorelightError as exc:
         raise EgorelightError(exc.message, path) from None
+    except (TypeError, ValueError) as exc:  # e.g. text where numbers belong
+        raise EgorelightError(f"keypoints payload holds arrays of the wrong type ({exc})", path) from None
 
 
 def write_keypoints_npz(path: str | Path, keypoints: Keypoints, **meta) -> None:

@@ -21,7 +21,7 @@ import numpy as np
 
 from egorelight_cli.artifacts import resolve_payload
 from egorelight_cli.errors import EgorelightError
-from egorelight_cli.io.npz import read_kind_npz, require_arrays, write_npz
+from egorelight_cli.io.npz import payload_fps, read_kind_npz, require_arrays, write_npz
 from egorelight_cli.structures.motion import Motion
 
 MOTION_KIND = "egorelight/motion"
@@ -33,7 +33,7 @@ MOTION_UNITS = {"theta": "rad (revolute DoFs) | m (prismatic DoFs)", "fitted_key
 def motion_from_arrays(arrays: dict[str, np.ndarray], meta: dict | None = None,
                        path: str | Path | None = None) -> Motion:
     require_arrays(arrays, ("theta", "dof_names", "frame_ids"), "motion payload", path)
-    fps = float(arrays["fps"]) if "fps" in arrays else (meta or {}).get("fps")
+    fps = payload_fps(arrays, None, "motion payload", path) or payload_fps({}, meta, "motion payload", path)
     if fps is None:
         raise EgorelightError("motion payload has no fps", path)
     try:
@@ -41,6 +41,8 @@ def motion_from_arrays(arrays: dict[str, np.ndarray], meta: dict | None = None,
                       arrays.get("fitted_keypoints"), arrays.get("residual_m"))
     except EgorelightError as exc:
         raise EgorelightError(exc.message, path) from None
+    except (TypeError, ValueError) as exc:  # e.g. text where numbers belong
+        raise EgorelightError(f"motion payload holds arrays of the wrong type ({exc})", path) from None
 
 
 def write_motion_npz(path: str | Path, motion: Motion, **meta) -> None:
@@ -64,6 +66,10 @@ def read_motion_npz(path: str | Path) -> Motion:
 
 def load_motion(path: str | Path):
     """Load a motion from an artifact directory, a single ``.npz`` (+ sidecar) or a lone
-    self-describing ``.npz``. Returns ``(Motion, Artifact | None)``."""
+    self-describing ``.npz``. Returns ``(Motion, Artifact | None)``; a motion of no frame is an
+    error (nothing a stage can drive, fit or learn from)."""
     payload, artifact = resolve_payload(path, "motion", MOTION_PAYLOAD, "motion")
-    return read_motion_npz(payload), artifact
+    motion = read_motion_npz(payload)
+    if motion.num_frames == 0:
+        raise EgorelightError("the motion holds no frame", payload)
+    return motion, artifact

@@ -81,6 +81,8 @@ def _load_clouds(path: Path | None, motions: Sequence[Motion],
     if path is None:
         raise EgorelightError("a point cloud is required (--pointcloud), or run with --no-depth")
     cloud, artifact = load_pointcloud(path)
+    if len(cloud.frame_ids) == 0:
+        raise EgorelightError("the point cloud holds no frame", path)
     have = set(int(f) for f in cloud.frame_ids)
     clouds = []
     for motion in motions:
