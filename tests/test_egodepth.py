@@ -71,6 +71,24 @@ def test_frames_of_a_sequence_without_studio_are_ego_ids(tiny_capture, oracle_ca
     assert posed.all()
 
 
+def test_a_sequence_without_a_valid_head_pose_is_an_error(tiny_capture, oracle_calibration):
+    """Every pose flagged (a failed head tracking): an error naming the calibration, not a point
+    cloud of no point (egodepth) or all-NaN keypoints (egopose), exit 0."""
+    import dataclasses
+
+    from egorelight_cli.errors import EgorelightError
+    from egorelight_cli.stages.egopose import frame_table
+
+    poses = oracle_calibration.head_poses["test"]
+    flagged = dataclasses.replace(oracle_calibration, head_poses={
+        **oracle_calibration.head_poses, "test": dataclasses.replace(poses, valid=np.zeros_like(poses.valid))})
+    capture = Capture(tiny_capture)
+    with pytest.raises(EgorelightError, match="has a valid head pose"):
+        ed.usable_frames(flagged, capture.sequence("test"), ROLES)
+    with pytest.raises(EgorelightError, match="has a valid head pose"):
+        frame_table(capture, flagged, "test")
+
+
 def test_training_reduces_the_loss_and_beats_a_constant_depth(trained_model):
     from egorelight_cli.stages.egodepth_commands import load_depth_model
 

@@ -43,6 +43,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 import torch
 
+from egorelight_cli import console
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.sharding import evenly_spaced, split_frames
 from egorelight_cli.geometry.cameras import Camera, invert_rigid, transform_points
@@ -113,6 +114,12 @@ def usable_frames(calibration: Calibration, sequence: SequenceInfo, roles: Seque
     if not frames:
         raise EgorelightError(f"sequence {sequence.name!r} has no content frame with ego images of "
                               f"{', '.join(roles)}", sequence.root)
+    if not any(posed):  # every point would be dropped: the trouble is upstream, say so here
+        raise EgorelightError(f"no frame of sequence {sequence.name!r} with ego images has a valid head pose",
+                              calibration.source)
+    if len(frames) < len(candidates):
+        console.info(f"egodepth: {len(candidates) - len(frames)} of {len(candidates)} content frames of "
+                     f"{sequence.name!r} lack ego images of {', '.join(roles)} and are left out")
     return np.array(frames, np.int64), np.array(posed, bool)
 
 

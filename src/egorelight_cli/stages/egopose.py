@@ -215,6 +215,9 @@ def frame_table(capture: Capture, calibration: Calibration, sequence: str, only_
         i = lookup.get(int(frame))
         if i is not None and poses.valid[i]:
             T[row], valid[row] = poses.T_world_from_hmd[i], True
+    if not valid.any():  # every keypoint would be NaN: the trouble is upstream, say so here
+        raise EgorelightError(f"no frame of sequence {sequence!r} with ego images has a valid head pose ({source})",
+                              calibration.source if source == "calibration" else info.head_pose_path())
     fps = float(info.doc["fps"]) if info.doc.get("fps") else None
     return EgoFrames(sequence, ids, ego_ids, torch.empty((len(ids), 0), dtype=torch.uint8), T, valid,
                      np.isin(ids, content_ids), source, fps)
