@@ -213,3 +213,23 @@ def test_bad_inputs_raise_egorelight_error():
         project(np.zeros((3, 2)), K_PINHOLE, DIST_PINHOLE, "pinhole")
     with pytest.raises(EgorelightError):
         project(np.ones((3, 3)), K_FISHEYE, np.zeros(6), "fisheye")
+
+
+def test_a_virtual_camera_json_that_cannot_render_is_an_error_naming_it(tmp_path):
+    from egorelight_cli.geometry.cameras import Camera, look_at
+    from egorelight_cli.io.camera_json import read_camera_json
+
+    good = Camera("pinhole", [[200, 0, 80], [0, 200, 60], [0, 0, 1]], [], 160, 120,
+                  np.linalg.inv(look_at([0, 1.5, 3], [0, 1, 0])), "orbit").to_dict()
+    (tmp_path / "good.json").write_text(json.dumps(good))
+    assert read_camera_json(tmp_path / "good.json").width == 160
+    scaled = np.asarray(good["T_cam_from_world"]) @ np.diag([2.0, 2.0, 2.0, 1.0])
+    for name, change, says in (("zero_t", {"T_cam_from_world": np.zeros((4, 4)).tolist()}, "not a rigid"),
+                               ("scaled", {"T_cam_from_world": scaled.tolist()}, "not a rigid"),
+                               ("zero_f", {"K": [[0, 0, 80], [0, 0, 60], [0, 0, 1]]}, "focal lengths"),
+                               ("huge", {"width": 100000, "height": 100000}, "outside 1..16384"),
+                               ("text", {"width": "wide"}, "bad value")):
+        (tmp_path / f"{name}.json").write_text(json.dumps({**good, **change}))
+        with pytest.raises(EgorelightError, match=says) as info:
+            read_camera_json(tmp_path / f"{name}.json")
+        assert f"{name}.json" in str(info.value)
