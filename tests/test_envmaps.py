@@ -107,6 +107,15 @@ def test_load_user_maps(tmp_path):
     broken.write_bytes(b"not an image")
     with pytest.raises(EgorelightError, match="broken.hdr"):
         load_envmap(broken)
+    negated = tmp_path / "negated.exr"  # a sign flipped: no light left after clipping
+    write_exr_layers(negated, {"": -np.ones((8, 16, 3), np.float32)})
+    with pytest.raises(EgorelightError, match="holds no light") as info:
+        load_envmap(negated)
+    assert "negated.exr" in str(info.value)
+    ringing = np.ones((8, 16, 3), np.float32)
+    ringing[0, 0] = -0.01
+    write_exr_layers(tmp_path / "ringing.exr", {"": ringing})
+    assert load_envmap(tmp_path / "ringing.exr").min() == 0.0  # a few negative texels are clipped
 
 
 def test_unknown_kind_and_bad_height():

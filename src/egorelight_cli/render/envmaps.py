@@ -421,7 +421,12 @@ def load_envmap(path: str | Path, height: int | None = None) -> np.ndarray:
         raise EgorelightError(f"environment map must be an RGB image, got shape {image.shape}", path)
     if not np.isfinite(image).all():
         raise EgorelightError("environment map contains NaN or infinity", path)
-    if (image < 0).any():
+    if not (image > 0).any():
+        raise EgorelightError("environment map holds no light (no positive radiance)", path)
+    if (image < 0).any():  # radiance is not negative: filtering ringing, clipped (said once)
+        from egorelight_cli import console
+
+        console.info(f"environment map: {int((image < 0).sum())} negative values clipped to 0 ({path})")
         image = np.maximum(image, 0.0)
     rows, cols = image.shape[:2]
     if abs(cols / rows - 2.0) > 0.1:
