@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 from egorelight_cli import console
-from egorelight_cli.artifacts import ArtifactWriter, open_artifact
+from egorelight_cli.artifacts import ArtifactWriter, check_sequence, open_artifact
 from egorelight_cli.config import Config
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.geometry.cameras import Camera
@@ -105,6 +105,7 @@ class CompositeCommands:
         envmap_artifact = open_artifact(envmap_path, kind="envmap")
         if envmap_artifact.single_file:
             raise EgorelightError("an envmap artifact is a directory", envmap_path)
+        check_sequence(envmap_artifact, seq)  # the light of the room the avatar goes into
         colour = RootPolynomialColour.from_json(envmap_artifact.root / "colour_model.json")
         envmap = load_envmap(envmap_artifact.root / "envmap.exr")
         try:
@@ -116,6 +117,8 @@ class CompositeCommands:
         model, net, model_artifact = load_relight_model(avatar.model)
         meshes, meshes_artifact = load_character_meshes(avatar.meshes, character)
         uvmaps = open_artifact(avatar.uvmaps, kind="uvmaps")
+        for artifact in (meshes_artifact, uvmaps):
+            check_sequence(artifact, avatar.sequence)
         data = EgoAvatarData(capture, avatar_sequence, meshes, uvmaps, character, int(net["uv_resolution"]),
                              int(net["attention_level"]), int(net["rays"]))
         avatar_frames = [int(f) for f in meshes.frame_ids if data.has_maps(int(f))]

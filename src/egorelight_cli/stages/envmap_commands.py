@@ -83,7 +83,7 @@ class InverseInputs:
         """(wild data, studio data, model, the model's training sequence (None if unrecorded), input
         artifacts, source files: the lone npz and character files read)
         (:class:`~egorelight_cli.stages.envmap_inverse.EgoAvatarData`)."""
-        from egorelight_cli.artifacts import open_artifact
+        from egorelight_cli.artifacts import check_sequence, open_artifact
         from egorelight_cli.stages.character_commands import character_sources, load_character
         from egorelight_cli.stages.envmap_inverse import EgoAvatarData
         from egorelight_cli.stages.geolift_commands import load_character_meshes
@@ -97,6 +97,8 @@ class InverseInputs:
                                               (sync_sequence, self.sync_meshes, self.sync_uvmaps)):
             meshes, meshes_artifact = load_character_meshes(meshes_path, character)
             uvmaps = open_artifact(uvmaps_path, kind="uvmaps")
+            for artifact in (meshes_artifact, uvmaps):
+                check_sequence(artifact, seq.name)
             data.append(EgoAvatarData(capture, seq, meshes, uvmaps, character, int(net["uv_resolution"]),
                                       int(net["attention_level"]), int(net["rays"])))
             artifacts += [meshes_artifact, uvmaps]

@@ -38,7 +38,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
-from egorelight_cli.artifacts import Artifact, ArtifactWriter, MANIFEST_NAME
+from egorelight_cli.artifacts import Artifact, ArtifactWriter, MANIFEST_NAME, check_sequence
 from egorelight_cli.config import Config
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.io.keypoints import load_keypoints
@@ -264,6 +264,8 @@ class IKCommands:
             inputs.append(model_artifact)
         gt_keypoints = gt_motion = None
         if gt_path is not None:
+            if Path(gt_path).is_dir() and Path(gt_path).parent.name == "groundtruth":  # capture/groundtruth/<seq>
+                check_sequence(source.artifact, Path(gt_path).name)
             gt_keypoints, gt_motion, gt_artifacts, gt_sources = load_gt(gt_path, character)
             inputs += gt_artifacts
             sources += gt_sources
