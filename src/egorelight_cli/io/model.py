@@ -63,8 +63,9 @@ def read_model(root: str | Path, stage: str | None = None) -> ModelPayload:
         raise EgorelightError("model file not found", path)
     try:
         data = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:  # torch raises pickle/zip/runtime errors for corrupt files
-        raise EgorelightError(f"cannot load model ({type(exc).__name__}: {exc})", path) from None
+    except Exception as exc:  # torch raises pickle/zip/runtime errors for corrupt files (messages of many lines)
+        first = (str(exc).strip().splitlines() or [""])[0]
+        raise EgorelightError(f"cannot load model ({type(exc).__name__}: {first})", path) from None
     if not isinstance(data, dict) or "state_dict" not in data:
         raise EgorelightError("not an egorelight model file", path)
     if stage is not None and data.get("stage") != stage:

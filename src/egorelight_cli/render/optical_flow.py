@@ -41,6 +41,8 @@ def flow_method(method: str, raft_weights: str | None) -> tuple[str, str | None]
         import torchvision  # noqa: F401
     except ImportError:
         return "dis", "torchvision is not installed (RAFT needs it): DIS used instead"
+    except Exception as exc:  # a torchvision built for another torch fails on import with other errors
+        return "dis", f"torchvision does not import beside this torch ({type(exc).__name__}): DIS used instead"
     return "raft", None
 
 
