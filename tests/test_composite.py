@@ -298,6 +298,7 @@ def test_bad_inputs_are_one_line_errors_with_nothing_written(tiny_capture, oracl
         (["--set", "placement.floor=ceiling"], "placement.floor"),
         (["--set", "frames=0"], "frames"),
         (["--set", "colour.inverse=full"], "colour.inverse"),
+        (["--place", "-2,0,0"], "in view in none"),   # behind the viewer: nothing to composite
     ]
     for k, (extra, needle) in enumerate(cases):
         out = tmp_path / f"out{k}"

@@ -160,6 +160,10 @@ class CompositeCommands:
             lightstage = data.lightstage
             light = torch.from_numpy(lightstage.envmap_to_intensities(envmap, -placement.yaw_deg))
             composites, residuals, masks = _render_row(model, data, views, light, mapping)
+            if not any(m.any() for m in masks):
+                raise EgorelightError(f"the avatar is in view in none of the {len(views)} frames: --place "
+                                      f"{forward_m:g},{right_m:g},{yaw_deg:g} puts it out of the camera's sight (at "
+                                      "or behind the viewer?)")
             writer.timing["composite_s"] = round(time.perf_counter() - started, 3)
             writer.timing["per_frame_s"] = round(writer.timing["composite_s"] / len(views), 3)
             for view, image in zip(views, composites):

@@ -92,7 +92,7 @@ class EnvmapResult:
 
 def scan_frames(calibration: Calibration, sequence: SequenceInfo, count: int, scan_s: float) -> np.ndarray:
     """(F,) up to ``count`` frame ids spread uniformly over the scan: the frames with a valid head
-    pose in the sequence's first ``scan_s`` seconds (all of them for ``scan_s = 0``)."""
+    pose and ego images in the sequence's first ``scan_s`` seconds (all of them for ``scan_s = 0``)."""
     if sequence.name not in calibration.head_poses:
         raise EgorelightError(f"calibration has no head poses for sequence {sequence.name!r}", calibration.source)
     poses = calibration.head_poses[sequence.name]
@@ -100,6 +100,8 @@ def scan_frames(calibration: Calibration, sequence: SequenceInfo, count: int, sc
         raise EgorelightError(f"calibration has no frames for sequence {sequence.name!r}", calibration.source)
     ids = np.asarray(poses.frame_ids, dtype=np.int64)
     keep = np.asarray(poses.valid, dtype=bool).copy()
+    ego_ids = np.array([calibration.ego_frame_id(sequence.name, int(f)) for f in ids], np.int64)
+    keep &= np.isin(ego_ids, sequence.ego_frame_ids)  # a studio frame before the ego stream starts has no image
     if scan_s > 0:
         if "fps" not in sequence.doc:
             raise EgorelightError("sequence.json has no fps: set panorama.scan_s=0 to use the whole sequence",
@@ -107,8 +109,8 @@ def scan_frames(calibration: Calibration, sequence: SequenceInfo, count: int, sc
         keep &= ids < ids.min() + scan_s * float(sequence.fps)
     ids = np.sort(ids[keep])
     if ids.size == 0:
-        raise EgorelightError(f"no frame of the scan ({scan_s:g} s of {sequence.name}) has a calibrated head pose",
-                              calibration.source)
+        raise EgorelightError(f"no frame of the scan ({scan_s:g} s of {sequence.name}) has a calibrated head pose "
+                              "and ego images", calibration.source)
     picks = np.unique(np.round(np.linspace(0, ids.size - 1, min(int(count), ids.size))).astype(np.int64))
     return ids[picks]
 
