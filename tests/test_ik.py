@@ -268,13 +268,18 @@ def test_default_hand_prior_bends_fingers_in_joint_angles_not_dof_units(ddc_exam
         IKSettings(hand_max_flexion_deg=0.0)
 
 
-def test_trained_hand_prior_beats_the_default_on_held_out_fingers(ddc_example):
+@pytest.mark.parametrize("which", ["default", "ddc"])
+def test_trained_hand_prior_beats_the_default_on_held_out_fingers(character, which, request):
     """Fingers curling independently (outside the default model's coupled grasp subspace): a
-    model trained on the first half of the motion fits the second half's hands better, noise-free."""
-    from egorelight_cli.stages.character_commands import load_character
+    model trained on the first half of the motion fits the second half's hands better, noise-free.
+    On the shipped character (runs in CI) and on the DDC example (needs ../shared)."""
     from egorelight_cli.stages.ik_model import finger_of
 
-    ddc, _ = load_character(ddc_example / "ddc.character")
+    ddc = character
+    if which == "ddc":
+        from egorelight_cli.stages.character_commands import load_character
+
+        ddc, _ = load_character(request.getfixturevalue("ddc_example") / "ddc.character")
     default = default_ik_model(ddc, FAST)
     T = 80
     theta = smooth_motion(ddc, default, T=T, seed=3, amplitude=0.1)
@@ -296,7 +301,9 @@ def test_trained_hand_prior_beats_the_default_on_held_out_fingers(ddc_example):
     for name, model in (("default", default), ("trained", trained)):
         result = solve_ik(ddc, held_out, model, FAST)
         errors[name] = float(np.linalg.norm(result.fitted_keypoints - held_out.xyz, axis=-1)[:, hands].mean())
-    assert errors["trained"] < 0.6 * errors["default"], errors
+    # the DDC fingers (DoF weight 3) lie far outside the default grasp subspace; the shipped
+    # character's less so (measured: 0.14 -> 0.086 cm, ratio 0.61)
+    assert errors["trained"] < (0.6 if which == "ddc" else 0.75) * errors["default"], errors
 
 
 def test_model_training_and_pca(character):
