@@ -194,10 +194,10 @@ $(EGODEPTH_MODEL): $(CAPTURE) $(CALIBRATION)
 	$(EGO) $(EGOFLAGS) train egodepth $(EGO_INPUTS) --out $(SUBJECT)/models/egodepth
 
 # point clouds of a sequence: $(1) sequence, $(2) output, $(3) extra options (a shard)
-EGODEPTH_OF = $(EGO) $(EGOFLAGS) egodepth $(EGO_INPUTS) --model $(SUBJECT)/models/egodepth \
+EGODEPTH_OF = $(EGO) $(EGOFLAGS) egodepth $(EGO_INPUTS) $(if $(filter net,$(EGODEPTH_METHOD)),--model $(SUBJECT)/models/egodepth) \
 	--method $(EGODEPTH_METHOD) --seq $(1) $(3) --out $(2)
 
-$(eval $(call PER_FRAME_RULES,pointcloud,$(CAPTURE) $(CALIBRATION) $(EGODEPTH_MODEL),EGODEPTH_OF))
+$(eval $(call PER_FRAME_RULES,pointcloud,$(CAPTURE) $(CALIBRATION) $(if $(filter net,$(EGODEPTH_METHOD)),$(EGODEPTH_MODEL)),EGODEPTH_OF))
 
 # ---------------------------------------------------------------- learning curves (issue 21)
 # Held-out error on SEQ against the number of training frames: each model is trained like the

@@ -154,7 +154,9 @@ def test_stage_run_skips_when_up_to_date_and_force_reruns(tmp_path, monkeypatch)
 def test_check_sequence_names_an_input_made_for_another_sequence(tmp_path):
     from egorelight_cli.artifacts import check_sequence
 
-    with ArtifactWriter(tmp_path / "cloud", kind="pointcloud", stage="egodepth",
+    with ArtifactWriter(tmp_path / "capture", kind="capture", stage="synth", config={}) as writer:
+        writer.save_json("info.json", {})
+    with ArtifactWriter(tmp_path / "cloud", kind="pointcloud", stage="egodepth", inputs=[open_artifact(tmp_path / "capture")],
                         config={"options": {"sequence": "wild"}}) as writer:
         writer.save_json("info.json", {})
     cloud = open_artifact(tmp_path / "cloud")
@@ -166,3 +168,8 @@ def test_check_sequence_names_an_input_made_for_another_sequence(tmp_path):
     with ArtifactWriter(tmp_path / "motion", kind="motion", stage="ik", config={}) as writer:
         writer.save_json("info.json", {})
     check_sequence(open_artifact(tmp_path / "motion"), "test")  # records no sequence: nothing to check
+    # made without a capture, --seq kept its default and says nothing about the frames
+    with ArtifactWriter(tmp_path / "meshes", kind="meshes", stage="animate",
+                        config={"options": {"sequence": "test"}}) as writer:
+        writer.save_json("info.json", {})
+    check_sequence(open_artifact(tmp_path / "meshes"), "wild")

@@ -60,6 +60,8 @@ def test_usage_errors_are_one_line_exit_2():
     assert_one_line_error(run("ik", "--in", "k.npz"), "Missing option '--out'", "egorelight ik --help")
     assert_one_line_error(run("egodepth", "--method", "foo", "--out", "x"), "'foo' is not one of")
     assert_one_line_error(run("no-such-command"), "No such command")
+    shown = run("train")  # a group without its command shows its help, not an error line
+    assert "Usage:" in shown.stdout + shown.stderr and "egorelight: error" not in shown.stderr
 
 
 def test_version():

@@ -292,9 +292,11 @@ TEMPORARY_TAGS = ("tmp", "old")  # work directory of a writer; previous artifact
 
 def check_sequence(artifact: Artifact | None, sequence: str) -> None:
     """An EgorelightError when ``artifact`` was made for another sequence than ``sequence`` (its
-    manifest's ``config.options.sequence``): inputs of two sequences mixed up. Nothing to check for
-    an artifact that records none (a motion, a lone npz) or for None."""
-    if artifact is None:
+    manifest's ``config.options.sequence``, trusted only when the artifact was made from a capture:
+    without one, ``--seq`` keeps its default and says nothing): inputs of two sequences mixed up.
+    Nothing to check for an artifact that records none (a motion, a lone npz) or for None."""
+    if artifact is None or not any(entry.get("kind") == KIND_PREFIX + "capture"
+                                   for entry in artifact.manifest.get("inputs") or []):
         return
     recorded = ((artifact.manifest.get("config") or {}).get("options") or {}).get("sequence")
     if recorded is not None and str(recorded) != str(sequence):

@@ -240,6 +240,9 @@ def main(argv: list[str] | None = None) -> None:
         code = 0
     except click.exceptions.Exit as exc:
         code = exc.exit_code
+    except click.exceptions.NoArgsIsHelpError as exc:  # a group without a command: its help
+        exc.show()
+        code = exc.exit_code
     except click.UsageError as exc:  # one line, like every other bad input
         command = exc.ctx.command_path if exc.ctx is not None else "egorelight"
         click.echo(f"egorelight: error: {exc.format_message()} (see '{command} --help')", err=True)

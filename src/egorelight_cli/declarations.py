@@ -177,7 +177,7 @@ STAGE_COMMANDS = (
             "egorelight_cli.stages.animate_commands:animate_command",
             Output("meshes", "Meshes artifact directory (or .npz file)."),
             inputs=(Input("--motion", "motion", "Motion artifact (ik).", ("motion",), (".npz",), required=True),
-                    Input("--pointcloud", "pointcloud", "Pointcloud artifact (egodepth); not needed with --no-depth.",
+                    Input("--pointcloud", "pointcloud", "Pointcloud artifact (egodepth); leave it out with --no-depth.",
                           ("pointcloud",)),
                     Input("--model", "model", "animate model (train animate).", ("model",), required=True),
                     character("Character artifact, .npz, .character or 'default'."),

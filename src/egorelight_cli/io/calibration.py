@@ -107,8 +107,8 @@ def _head_poses(npz: Path) -> HeadPoses:
     if missing:
         raise EgorelightError(f"head poses lack {', '.join(missing)}", npz)
     T, frame_ids, valid = arrays["T_world_from_hmd"], arrays["frame_ids"], arrays["valid"]
-    n = len(frame_ids)
-    if frame_ids.ndim != 1 or T.shape != (n, 4, 4) or any(arrays[k].shape != (n,) for k in keys[2:]):
+    n = len(frame_ids) if frame_ids.ndim == 1 else -1
+    if T.shape != (n, 4, 4) or any(arrays[k].shape != (n,) for k in keys[2:]):
         raise EgorelightError(f"head poses need T_world_from_hmd (T,4,4) and frame_ids, valid, num_markers, "
                               f"residual_px (T,); got {', '.join(f'{k} {arrays[k].shape}' for k in keys)}", npz)
     if valid.dtype != np.bool_ or not np.issubdtype(frame_ids.dtype, np.integer):

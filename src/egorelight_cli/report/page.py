@@ -23,6 +23,8 @@ from egorelight_cli.report.metrics import (GROUPS, MetricRow, is_number, metric_
 
 INDEX = "index.html"
 ASSETS = "assets"
+#: files a desktop leaves in any folder: a report folder holding them may still be replaced
+OS_LITTER = (".DS_Store", "Thumbs.db", "desktop.ini")
 MAX_IMAGES = 12  # previews shown per artifact; the rest are counted
 MAX_OUTPUTS_LISTED = 40
 RELIT_VS_TRUTH = ("relit vs truth, side by side: captured target | relit render | Lambert baseline | baked texture "
@@ -351,8 +353,11 @@ def _votes(better: int, worse: int) -> str:
 
 def is_report_folder(folder: Path) -> bool:
     """Whether ``folder`` (a directory) may be replaced by a report: it is empty or holds only what
-    a report writes (``index.html`` and ``assets/``)."""
-    return all(entry.name in (INDEX, ASSETS) for entry in folder.iterdir())
+    a report writes (``index.html`` and ``assets/``), and perhaps a desktop's :data:`OS_LITTER`."""
+    try:
+        return all(entry.name in (INDEX, ASSETS, *OS_LITTER) for entry in folder.iterdir())
+    except OSError as exc:
+        raise EgorelightError(f"cannot read the report folder ({exc.strerror or exc})", folder) from None
 
 
 def build_report(subject: str | Path, out: str | Path | None = None) -> Path:

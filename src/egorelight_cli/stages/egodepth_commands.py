@@ -48,10 +48,12 @@ def load_inputs(capture_path: Path, calibration_path: Path,
 
 def backbone_sources(backbone: Path | None) -> list[Path]:
     """The files of a ``--backbone`` folder that enter the cache key: every file in it (``config.json``
-    and the weights ``from_pretrained`` loads, whatever their format), sorted; none without one."""
+    and the weights ``from_pretrained`` loads, whatever their format) but hidden ones (``.git/``),
+    sorted; none without one."""
     if backbone is None:
         return []
-    files = sorted(p for p in Path(backbone).rglob("*") if p.is_file() and not p.name.startswith("."))
+    files = sorted(p for p in Path(backbone).rglob("*") if p.is_file()
+                   and not any(part.startswith(".") for part in p.relative_to(backbone).parts))  # no .git/
     if Path(backbone) / "config.json" not in files:
         raise EgorelightError("not a Depth-Anything-V2 model folder (no config.json)", backbone)
     return files
