@@ -34,8 +34,9 @@ def mutations(data: bytes, seed: int, count: int = MUTATIONS):
             yield f"bits flipped at {sorted(int(p) for p in positions)}", bytes(mutated)
 
 
-def check_each_mutation(run, target: Path, args, seed: int, count: int = MUTATIONS) -> None:
-    """Run ``egorelight *args`` once per mutation of ``target`` (restored afterwards)."""
+def check_each_mutation(run, target: Path, args, seed: int, count: int = MUTATIONS, must_fail: bool = False) -> None:
+    """Run ``egorelight *args`` once per mutation of ``target`` (restored afterwards); with
+    ``must_fail`` (a payload its manifest holds the digest of) exit 0 is not accepted either."""
     original = target.read_bytes()
     failures = []
     try:
@@ -43,7 +44,7 @@ def check_each_mutation(run, target: Path, args, seed: int, count: int = MUTATIO
             target.write_bytes(data)
             result = run(*args, "-q")
             lines = result.stderr.strip().splitlines()
-            ok = result.returncode == 0 or (
+            ok = (result.returncode == 0 and not must_fail) or (
                 result.returncode == 2 and len(lines) == 1 and lines[0].startswith("egorelight: error:"))
             if not ok or "Traceback" in result.stderr:
                 failures.append(f"{target.name} {what}: exit {result.returncode}: {result.stderr.strip()[:300]}")
@@ -90,6 +91,9 @@ def test_manifest_reader(run, small_artifacts, tmp_path):
     check_each_mutation(run, single.with_name("kp.npz.json"), ("inspect", single), seed=5)
     check_each_mutation(run, single.with_name("kp.npz.json"),
                         ("ik", "--preset", "tiny", "--in", single, "--out", tmp_path / "m.npz"), seed=6)
+    # the payload of a single-file artifact: its sidecar holds its digest, so every change is caught
+    check_each_mutation(run, single, ("ik", "--preset", "tiny", "--in", single, "--out", tmp_path / "p.npz"), seed=12,
+                        count=6, must_fail=True)
 
 
 def test_bvh_reader(run, tmp_path):
