@@ -84,3 +84,23 @@ def test_errors(tmp_path):
     write_exr_layers(tmp_path / "ok.exr", {"": np.zeros((2, 2, 3))})
     with pytest.raises(EgorelightError, match="no layer"):
         read_exr(tmp_path / "ok.exr").layer("normal")
+
+
+def test_a_truncated_exr_is_said_once_in_the_error(tmp_path):
+    """OpenEXR prints its complaints on stdout and stderr itself: they are taken into the one-line
+    error instead of surrounding it (a process of its own: pytest's capture bypasses the fds)."""
+    import subprocess
+    import sys
+
+    rng = np.random.default_rng(0)
+    write_exr(tmp_path / "ok.exr", {c: rng.random((64, 64)).astype(np.float32) for c in "RGB"})
+    data = (tmp_path / "ok.exr").read_bytes()
+    (tmp_path / "cut.exr").write_bytes(data[:len(data) // 2])
+    result = subprocess.run([sys.executable, "-m", "egorelight_cli.cli", "inspect", str(tmp_path / "cut.exr")],
+                            capture_output=True, text=True)
+    assert result.returncode == 2 and result.stdout == "", result.stdout
+    lines = result.stderr.splitlines()
+    assert len(lines) == 1 and lines[0].startswith("egorelight: error: cannot read EXR") and "cut.exr" in lines[0]
+    good = subprocess.run([sys.executable, "-m", "egorelight_cli.cli", "inspect", str(tmp_path / "ok.exr")],
+                          capture_output=True, text=True)
+    assert good.returncode == 0 and "(64, 64) float32" in good.stdout and good.stderr == ""
