@@ -219,3 +219,32 @@ def test_the_early_check_steps_aside_when_an_input_is_left_out_swapped_or_built_
     built_in = ("--preset", "tiny", "ik", "--character", "default", "--in", truth, "--gt", other, "--out", motion)
     result = run(*built_in)
     assert result.returncode == 1 and "the handler ran" in result.stderr
+
+
+def test_re_making_an_input_with_the_same_content_keeps_what_depends_on_it_current(tmp_path, tiny_capture, run,
+                                                                                   monkeypatch):
+    """An artifact's digest leaves out when and how fast it was made (artifacts.content_digest):
+    `character default --force` writes a manifest with another `created` and timing, and the motion
+    made from the character stays up to date (it used to re-run, and so did everything after it)."""
+    from egorelight_cli import stage_spec
+    from egorelight_cli.artifacts import open_artifact
+
+    truth = tiny_capture / "groundtruth" / "test" / "keypoints.npz"
+    character, motion = tmp_path / "character", tmp_path / "motion"
+    assert run("--preset", "tiny", "character", "default", "--out", character).returncode == 0
+    before = open_artifact(character)
+    args = ("--preset", "tiny", "ik", "--in", truth, "--character", character, "--out", motion)
+    assert run(*args).returncode == 0
+    import time
+
+    time.sleep(1.1)  # another `created` second
+    assert run("--preset", "tiny", "character", "default", "--out", character, "--force").returncode == 0
+    after = open_artifact(character)
+    assert after.manifest["created"] != before.manifest["created"] and after.digest == before.digest
+
+    def handler_must_not_run(self):
+        raise AssertionError(f"{self.name}: the handler ran")
+
+    monkeypatch.setattr(stage_spec.Command, "handler_function", handler_must_not_run)
+    result = run(*args)
+    assert result.returncode == 0 and "up to date" in result.stderr

@@ -102,6 +102,25 @@ def sha256_bytes(data: bytes) -> str:
     return "sha256:" + hashlib.sha256(data).hexdigest()
 
 
+#: manifest fields that say when, where and how fast an artifact was made, not what it holds: left
+#: out of its digest, so re-making an artifact with the same content keeps what depends on it current
+VOLATILE_FIELDS = ("created", "timing", "runtime", "tool_version")
+
+
+def content_digest(manifest: dict) -> str:
+    """An artifact's digest: sha256 of its manifest's canonical JSON without :data:`VOLATILE_FIELDS`,
+    its ``inputs`` and ``sources`` entries reduced to what they are (kind, digest, the flag they came
+    through), not the path they were given by. It lists every output's digest, so it identifies the
+    artifact's content and what it was made from."""
+    def entries(name: str) -> list[dict]:
+        return [{k: e.get(k) for k in ("kind", "digest", "param")} for e in manifest.get(name) or []
+                if isinstance(e, dict)]
+
+    kept = {k: v for k, v in manifest.items() if k not in VOLATILE_FIELDS and k not in ("inputs", "sources")}
+    kept.update(inputs=entries("inputs"), sources=entries("sources"))
+    return sha256_bytes(json.dumps(kept, sort_keys=True, separators=(",", ":"), default=str).encode())
+
+
 def cache_key(stage: str, stage_version: int, config: dict, input_digests: list[str]) -> str:
     """hash(stage, stage version, resolved config, input digests) — order of inputs matters."""
     blob = json.dumps(
@@ -119,8 +138,8 @@ class Artifact:
     Attributes:
         manifest_path: the ``manifest.json`` or sidecar ``<file>.json``.
         manifest: its parsed content.
-        digest: sha256 of the manifest bytes (it lists every output digest, so it identifies
-            the whole artifact's content).
+        digest: :func:`content_digest` of the manifest (it lists every output digest, so it
+            identifies the whole artifact's content; when and how fast it was made is left out).
         single_file: True for a file + sidecar artifact.
     """
 
@@ -244,9 +263,9 @@ def open_artifact(path: str | Path, kind: str | None = None, verify: bool = True
         raise EgorelightError(
             f"{KIND_PREFIX}{found} version mismatch: artifact is version {manifest.get('version')}, "
             f"this tool ({__version__}) reads version {known[found]}", path)
-    digest = sha256_bytes(raw)
-    _validate_once(manifest, manifest_path, digest)
-    artifact = Artifact(manifest_path=manifest_path, manifest=manifest, digest=digest, single_file=single_file)
+    _validate_once(manifest, manifest_path, sha256_bytes(raw))  # the bytes: what was validated
+    artifact = Artifact(manifest_path=manifest_path, manifest=manifest, digest=content_digest(manifest),
+                        single_file=single_file)
     if verify:
         artifact.verify()
     return artifact
