@@ -119,7 +119,8 @@ def _gt_in_pose_frame(calibration_path: Path, gt_path: Path | None, character: C
     from egorelight_cli.io.calibration import open_calibration
     from egorelight_cli.synth.groundtruth import T_pose_frame_from_truth_world, truth_frame_note
 
-    if gt_path is None or not (Path(gt_path) / "head_pose.npz").is_file():
+    if (gt_path is None or Path(gt_path).parent.name != "groundtruth"
+            or not (Path(gt_path) / "head_pose.npz").is_file()):
         raise EgorelightError("--calibration needs --gt to be a capture/groundtruth/<seq> folder with head_pose.npz",
                               gt_path or calibration_path)
     calibration, artifact = open_calibration(calibration_path)
@@ -274,6 +275,7 @@ class IKCommands:
             gt_keypoints, gt_motion, gt_frame, calibration_artifact = _gt_in_pose_frame(
                 calibration_path, gt_path, character, gt_keypoints, gt_motion)
             inputs.append(calibration_artifact)
+            sources.append(Path(gt_path) / "head_pose.npz")  # the truth's frame is read from it
         if source.keypoints is not None:
             from egorelight_cli.stages.ik import check_keypoints_for
 
