@@ -10,6 +10,7 @@ non-contiguous array silently wrong.
 
 from __future__ import annotations
 
+import functools
 import os
 import sys
 import tempfile
@@ -179,14 +180,22 @@ def _redirected() -> Iterator[dict[int, list[str]]]:
             captured[fd] += [line for line in text.splitlines() if line.strip()]
 
 
-def _flush_c_streams() -> None:
-    """``fflush(NULL)``: every C stdio stream of the process (a no-op where libc is not found)."""
+@functools.lru_cache(maxsize=1)
+def _libc():
+    """The process's C library (ctypes), None where it cannot be found."""
     import ctypes
 
     try:
-        ctypes.CDLL(None).fflush(None)
-    except (OSError, AttributeError):
-        pass
+        return ctypes.CDLL(None)
+    except OSError:
+        return None
+
+
+def _flush_c_streams() -> None:
+    """``fflush(NULL)``: every C stdio stream of the process (a no-op where libc is not found)."""
+    libc = _libc()
+    if libc is not None and hasattr(libc, "fflush"):
+        libc.fflush(None)
 
 
 def _read_quietly(path: Path, read, what: str):
