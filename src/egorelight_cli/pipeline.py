@@ -109,23 +109,23 @@ class StageRun:
                 or recorded != config.to_dict()
                 or {k: v for k, v in recorded_options.items() if k in names} != declared):
             return False
-        inputs = [open_artifact(artifact.root / entry["path"]) for entry in manifest.get("inputs", [])]
-        if [a.digest for a in inputs] != [entry["digest"] for entry in manifest.get("inputs", [])]:
+        recorded_inputs, recorded_sources = manifest.get("inputs", []), manifest.get("sources", [])
+        inputs = [open_artifact(artifact.root / entry["path"]) for entry in recorded_inputs]
+        if [a.digest for a in inputs] != [entry["digest"] for entry in recorded_inputs]:
             return False
-        sources = [Path(entry["path"]) for entry in manifest.get("sources", [])]
-        if [cached_sha256_file(p) for p in sources] != [entry["digest"] for entry in manifest.get("sources", [])]:
+        sources = [Path(entry["path"]) for entry in recorded_sources]
+        if [cached_sha256_file(p) for p in sources] != [entry["digest"] for entry in recorded_sources]:
             return False
         # every given input is a recorded one (else input_params raises), each came through the flag it
         # was recorded under (an input left out, or two files swapped, is another key), in the given order
-        recorded_sources = manifest.get("sources", [])
-        if (command.input_params(self.values, inputs, sources) != [e.get("param") for e in manifest.get("inputs", [])]
+        if (command.input_params(self.values, inputs, sources) != [e.get("param") for e in recorded_inputs]
                 or command.source_params(self.values, sources) != [e.get("param") for e in recorded_sources]
                 or not command.read_in_given_order(self.values, [a.path for a in inputs])
                 or not command.read_in_given_order(self.values, sources)):
             return False
         key = cache_key(self.stage, config.version, {**config.to_dict(), **({"options": recorded_options}
                                                                              if recorded_options else {})},
-                        [a.digest for a in inputs] + [entry["digest"] for entry in manifest.get("sources", [])])
+                        [a.digest for a in inputs] + [entry["digest"] for entry in recorded_sources])
         if key != manifest.get("cache_key") or artifact.payload_problems():
             return False
         console.info(f"{out}: up to date, skipped (--force re-runs it)")

@@ -45,6 +45,22 @@ def read_json_file(path: Path, what: str):
         raise EgorelightError(f"{what} is not valid JSON ({exc})", path) from None
 
 
+def _cameras(entries, key: str, what: str, path: Path, **kwargs) -> dict:
+    """``{entry[key]: Camera}`` of a rig file's camera entries (``kwargs`` to
+    :meth:`~egorelight_cli.geometry.cameras.Camera.from_dict`); a bad entry is an error naming ``path``."""
+    from egorelight_cli.geometry.cameras import Camera
+
+    cameras = {}
+    for entry in entries:
+        try:
+            cameras[entry[key]] = Camera.from_dict(entry, **kwargs)
+        except EgorelightError as exc:  # e.g. a field missing: said without the file
+            raise EgorelightError(f"invalid {what} camera entry: {exc.message}", path) from None
+        except (KeyError, ValueError, TypeError) as exc:
+            raise EgorelightError(f"invalid {what} camera entry ({type(exc).__name__}: {exc})", path) from None
+    return cameras
+
+
 @dataclass(frozen=True)
 class SequenceInfo:
     """One ``sequences/<name>/sequence.json`` and the folder it lives in.
@@ -190,18 +206,8 @@ class Capture:
     @cached_property
     def ego_cameras(self) -> dict[str, Camera]:
         """Intrinsics of every HMD camera by role (extrinsics identity: they are unknown)."""
-        from egorelight_cli.geometry.cameras import Camera
-
-        cameras = {}
-        for entry in self.hmd.get("cameras", []):
-            try:
-                cameras[entry["role"]] = Camera.from_dict(entry, T_cam_from_world=np.eye(4))
-            except EgorelightError as exc:  # e.g. a field missing: said without the file
-                raise EgorelightError(f"invalid HMD camera entry: {exc.message}", self.root / "rig" / "hmd.json") from None
-            except (KeyError, ValueError, TypeError) as exc:
-                raise EgorelightError(f"invalid HMD camera entry ({type(exc).__name__}: {exc})",
-                                      self.root / "rig" / "hmd.json") from None
-        return cameras
+        return _cameras(self.hmd.get("cameras", []), "role", "HMD", self.root / "rig" / "hmd.json",
+                        T_cam_from_world=np.eye(4))
 
     def ego_camera(self, role: str) -> Camera:
         if role not in self.ego_cameras:
@@ -212,19 +218,8 @@ class Capture:
     @cached_property
     def studio_cameras(self) -> dict[str, Camera]:
         """Every studio camera by name (``role`` studio or tracking in :attr:`studio_camera_roles`)."""
-        doc = read_json_file(self.root / "rig" / "studio_cameras.json", "studio camera rig")
-        from egorelight_cli.geometry.cameras import Camera
-
-        cameras = {}
-        for entry in doc.get("cameras", []):
-            try:
-                cameras[entry["name"]] = Camera.from_dict(entry)
-            except EgorelightError as exc:  # e.g. a field missing: said without the file
-                raise EgorelightError(f"invalid studio camera entry: {exc.message}", self.root / "rig" / "studio_cameras.json") from None
-            except (KeyError, ValueError, TypeError) as exc:
-                raise EgorelightError(f"invalid studio camera entry ({type(exc).__name__}: {exc})",
-                                      self.root / "rig" / "studio_cameras.json") from None
-        return cameras
+        path = self.root / "rig" / "studio_cameras.json"
+        return _cameras(read_json_file(path, "studio camera rig").get("cameras", []), "name", "studio", path)
 
     @cached_property
     def studio_camera_roles(self) -> dict[str, str]:

@@ -21,7 +21,7 @@ import numpy as np
 
 from egorelight_cli.artifacts import resolve_payload
 from egorelight_cli.errors import EgorelightError
-from egorelight_cli.io.npz import payload_fps, read_kind_npz, require_arrays, write_npz
+from egorelight_cli.io.npz import checked_fps, read_kind_npz, require_arrays, write_npz
 from egorelight_cli.structures.keypoints import KEYPOINT_NAMES, KEYPOINTS_UNITS, Keypoints
 
 __all__ = ["KEYPOINTS_KIND", "KEYPOINTS_VERSION", "KEYPOINTS_PAYLOAD", "KEYPOINTS_UNITS", "Keypoints",
@@ -37,7 +37,8 @@ def keypoints_from_arrays(arrays: dict[str, np.ndarray], meta: dict | None = Non
     """Build :class:`Keypoints` from payload arrays (errors name ``path``)."""
     require_arrays(arrays, ("xyz", "confidence", "frame_ids"), "keypoints payload", path)
     names = tuple(str(s) for s in arrays["names"]) if "names" in arrays else KEYPOINT_NAMES
-    fps = payload_fps(arrays, meta, "keypoints payload", path)
+    fps = (meta or {}).get("fps")
+    fps = checked_fps(arrays.get("fps") if fps is None else fps, "keypoints payload", path)
     try:
         return Keypoints(arrays["xyz"], arrays["confidence"], arrays["frame_ids"], names, fps)
     except EgorelightError as exc:

@@ -21,7 +21,7 @@ import numpy as np
 
 from egorelight_cli.artifacts import resolve_payload
 from egorelight_cli.errors import EgorelightError
-from egorelight_cli.io.npz import payload_fps, read_kind_npz, require_arrays, write_npz
+from egorelight_cli.io.npz import checked_fps, read_kind_npz, require_arrays, write_npz
 from egorelight_cli.structures.motion import Motion
 
 MOTION_KIND = "egorelight/motion"
@@ -33,7 +33,7 @@ MOTION_UNITS = {"theta": "rad (revolute DoFs) | m (prismatic DoFs)", "fitted_key
 def motion_from_arrays(arrays: dict[str, np.ndarray], meta: dict | None = None,
                        path: str | Path | None = None) -> Motion:
     require_arrays(arrays, ("theta", "dof_names", "frame_ids"), "motion payload", path)
-    fps = payload_fps(arrays, None, "motion payload", path) or payload_fps({}, meta, "motion payload", path)
+    fps = checked_fps(arrays["fps"] if "fps" in arrays else (meta or {}).get("fps"), "motion payload", path)
     if fps is None:
         raise EgorelightError("motion payload has no fps", path)
     try:

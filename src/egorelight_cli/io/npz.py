@@ -33,21 +33,16 @@ def require_arrays(arrays: dict[str, np.ndarray], names, what: str, path: str | 
         raise EgorelightError(f"{what} lacks {', '.join(missing)}", path)
 
 
-def payload_fps(arrays: dict[str, np.ndarray], meta: dict | None, what: str, path: str | Path | None = None
-                ) -> float | None:
-    """The frame rate of a payload: its metadata's ``fps``, else its ``fps`` array, which must hold
-    one positive number; None when neither is there."""
-    fps = (meta or {}).get("fps")
-    if fps is None and "fps" in arrays:
-        fps = arrays["fps"]
-        if np.size(fps) != 1 or not np.issubdtype(np.asarray(fps).dtype, np.number):
-            raise EgorelightError(f"{what}'s fps must be one number, got shape {np.shape(fps)} of "
-                                  f"{np.asarray(fps).dtype}", path)
+def checked_fps(fps, what: str, path: str | Path | None = None) -> float | None:
+    """A payload's frame rate (from its metadata or its ``fps`` array) as a float: one positive
+    finite number; None stays None."""
     if fps is None:
         return None
     value = np.asarray(fps).reshape(-1)[0] if np.size(fps) == 1 else None
-    if value is None or isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.number)) \
-            or not np.isfinite(value) or value <= 0:
+    if value is None or not np.issubdtype(np.asarray(value).dtype, np.number):
+        raise EgorelightError(f"{what}'s fps must be one number, got shape {np.shape(fps)} of "
+                              f"{np.asarray(fps).dtype}", path)
+    if isinstance(value, (bool, np.bool_)) or not np.isfinite(value) or value <= 0:
         raise EgorelightError(f"{what}'s fps must be a positive number, got {fps!r}", path)
     return float(value)
 

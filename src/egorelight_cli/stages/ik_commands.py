@@ -108,6 +108,12 @@ def _bvh_input(path: Path, character: Character, cfg: Config) -> IKInput:
     return IKInput(keypoints=keypoints, sources=[path], info=info)
 
 
+def truth_folder_sequence(gt_path: Path | None) -> str | None:
+    """The sequence of a capture's ``groundtruth/<seq>`` folder given as ``--gt``; None for anything else."""
+    return Path(gt_path).name if gt_path is not None and Path(gt_path).is_dir() \
+        and Path(gt_path).parent.name == "groundtruth" else None
+
+
 def _gt_in_pose_frame(calibration_path: Path, gt_path: Path | None, character: Character,
                       gt_keypoints: Keypoints | None, gt_motion: Motion | None):
     """(keypoints, motion, manifest note, calibration artifact): the ground truth of a
@@ -119,8 +125,7 @@ def _gt_in_pose_frame(calibration_path: Path, gt_path: Path | None, character: C
     from egorelight_cli.io.calibration import open_calibration
     from egorelight_cli.synth.groundtruth import T_pose_frame_from_truth_world, truth_frame_note
 
-    if (gt_path is None or Path(gt_path).parent.name != "groundtruth"
-            or not (Path(gt_path) / "head_pose.npz").is_file()):
+    if truth_folder_sequence(gt_path) is None or not (Path(gt_path) / "head_pose.npz").is_file():
         raise EgorelightError("--calibration needs --gt to be a capture/groundtruth/<seq> folder with head_pose.npz",
                               gt_path or calibration_path)
     calibration, artifact = open_calibration(calibration_path)
@@ -265,8 +270,9 @@ class IKCommands:
             inputs.append(model_artifact)
         gt_keypoints = gt_motion = None
         if gt_path is not None:
-            if Path(gt_path).is_dir() and Path(gt_path).parent.name == "groundtruth":  # capture/groundtruth/<seq>
-                check_sequence(source.artifact, Path(gt_path).name)
+            truth_sequence = truth_folder_sequence(gt_path)
+            if truth_sequence is not None:
+                check_sequence(source.artifact, truth_sequence)
             gt_keypoints, gt_motion, gt_artifacts, gt_sources = load_gt(gt_path, character)
             inputs += gt_artifacts
             sources += gt_sources
