@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import atexit
 import os
+import shutil
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -12,8 +14,9 @@ import pytest
 from egorelight_cli.io.character import load_default_character
 
 # this session's persistent digest cache (egorelight_cli.digest_cache), not the user's ~/.cache;
-# the CLI subprocesses inherit it
+# the CLI subprocesses inherit it; removed when the session ends
 os.environ["EGORELIGHT_CACHE_DIR"] = tempfile.mkdtemp(prefix="egorelight-digests-")
+atexit.register(shutil.rmtree, os.environ["EGORELIGHT_CACHE_DIR"], ignore_errors=True)
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"

@@ -43,6 +43,26 @@ def net_cloud(tiny_capture, oracle_calibration_artifact, trained_model, tmp_path
     return out
 
 
+def test_frames_without_ego_images_are_said_once_for_training_and_validation(tiny_capture, oracle_calibration,
+                                                                             monkeypatch, capsys, tmp_path):
+    """Training and validation views are two passes over the same frames; a frame without ego images
+    is dropped from both and said once (it was said twice)."""
+    from egorelight_cli import console
+
+    monkeypatch.setattr(console, "_level", console.NORMAL)
+    capture = Capture(tiny_capture)
+    sequence = capture.sequence("test")
+    missing = oracle_calibration.ego_frame_id("test", int(sequence.content_frame_ids[-1]))
+    real = type(sequence).ego_image_path  # a frozen dataclass: patched on the class, for this test only
+    monkeypatch.setattr(type(sequence), "ego_image_path",
+                        lambda self, role, f: tmp_path / "absent.png" if f == missing else real(self, role, f))
+    parts = {part: ed.supervision(capture, oracle_calibration, [sequence], ROLES, near_m=0.07, max_frames=1,
+                                  validation_frames=1, part=part) for part in ("training", "validation")}
+    assert all(len(views) == len(ROLES) for views in parts.values())
+    assert {v.frame_id for v in parts["training"]}.isdisjoint(v.frame_id for v in parts["validation"])
+    assert capsys.readouterr().err.count("are left out") == 1
+
+
 def test_recon_supervision_agrees_with_the_true_body(tiny_capture, oracle_calibration):
     """The reconstruction rendered into the posed ego cameras (H inv(Pi), stream offset) lands on
     the true body: where both are hit the ranges agree to about a centimetre."""

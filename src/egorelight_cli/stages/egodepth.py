@@ -98,9 +98,10 @@ def check_roles(capture: Capture, sequence: SequenceInfo, roles: Sequence[str]) 
             raise EgorelightError(f"sequence {sequence.name!r} has no ego stream {role!r}", sequence.root / "sequence.json")
 
 
-def usable_frames(calibration: Calibration, sequence: SequenceInfo, roles: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
+def usable_frames(calibration: Calibration, sequence: SequenceInfo, roles: Sequence[str],
+                  announce: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """Content frames (master clock) whose ego images exist, and for each whether the calibration
-    has a valid head pose there. Frames without ego images are dropped."""
+    has a valid head pose there. Frames without ego images are dropped (said once when ``announce``)."""
     if sequence.name not in calibration.head_poses:
         raise EgorelightError(f"calibration has no head poses for sequence {sequence.name!r}", calibration.source)
     poses = calibration.head_poses[sequence.name]
@@ -117,7 +118,7 @@ def usable_frames(calibration: Calibration, sequence: SequenceInfo, roles: Seque
     if not any(posed):  # every point would be dropped: the trouble is upstream, say so here
         raise EgorelightError(f"no frame of sequence {sequence.name!r} with ego images has a valid head pose",
                               calibration.source)
-    if len(frames) < len(candidates):
+    if announce and len(frames) < len(candidates):
         console.info(f"egodepth: {len(candidates) - len(frames)} of {len(candidates)} content frames of "
                      f"{sequence.name!r} lack ego images of {', '.join(roles)} and are left out")
     return np.array(frames, np.int64), np.array(posed, bool)
@@ -156,7 +157,8 @@ def supervision(capture: Capture, calibration: Calibration, sequences: Sequence[
     views: list[TrainingView] = []
     for sequence in sequences:
         check_roles(capture, sequence, roles)
-        frames, posed = usable_frames(calibration, sequence, roles)
+        # training and validation views are two calls over the same frames: say what is left out once
+        frames, posed = usable_frames(calibration, sequence, roles, announce=part == "training")
         frames = [f for f, ok in zip(frames, posed) if ok and sequence.recon_path(f).exists()]
         training, validation = split_frames(frames, max_frames, validation_frames)
         for f in (training if part == "training" else validation):

@@ -30,6 +30,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
@@ -42,6 +43,9 @@ from egorelight_cli.io.calibration import open_calibration
 from egorelight_cli.io.capture import open_capture
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.pipeline import StageRun
+
+if TYPE_CHECKING:  # the inverse rendering's module is imported only when it runs
+    from egorelight_cli.stages.envmap_inverse import EgoAvatarData, InverseSettings
 
 ENVMAP_EXR = "envmap.exr"
 PANORAMA_EXR = "panorama.exr"
@@ -107,6 +111,19 @@ class InverseInputs:
 
 
 @dataclass(frozen=True)
+class LoadedInverse:
+    """What the inverse rendering runs on, opened before the cache check: the wild and studio
+    (sync) sequences' avatar data, the relight model, the sequence it was trained on and the
+    settings."""
+
+    wild: EgoAvatarData
+    studio: EgoAvatarData
+    model: object
+    trained_on: str
+    settings: InverseSettings
+
+
+@dataclass(frozen=True)
 class EnvmapCommands:
     """``envmap`` over one :class:`StageRun`."""
 
@@ -124,12 +141,11 @@ class EnvmapCommands:
         if inverse is not None:
             from egorelight_cli.stages.envmap_inverse import InverseSettings
 
-            inverse_settings = InverseSettings.from_config(self.run.config())
             sync_sequence = capture.sequence(sync_name)
             wild, studio, model, trained_on, artifacts, sources = inverse.open(capture, sequence, sync_sequence)
             inputs += artifacts
             options["sync_sequence"] = sync_sequence.name
-            loaded = (wild, studio, model, trained_on, inverse_settings)
+            loaded = LoadedInverse(wild, studio, model, trained_on, InverseSettings.from_config(self.run.config()))
         if self.run.up_to_date(out, "envmap", inputs, sources, options):
             return Path(out)
         from egorelight_cli.stages import envmap as em
@@ -140,14 +156,14 @@ class EnvmapCommands:
         if loaded is not None:
             from egorelight_cli.stages import envmap_inverse as ei
 
-            wild, studio, _, _, inverse_settings = loaded
-            for data in (wild, studio):
-                for role in inverse_settings.roles:
+            roles = loaded.settings.roles
+            for data in (loaded.wild, loaded.studio):
+                for role in roles:
                     if role not in data.sequence.ego_roles or role not in calibration.ego_cameras:
-                                    raise EgorelightError(f"inverse.roles: {data.sequence.name} or the calibration has no camera "
+                        raise EgorelightError(f"inverse.roles: {data.sequence.name} or the calibration has no camera "
                                               f"{role!r} (sequence has {', '.join(data.sequence.ego_roles) or 'none'})")
-            ei.usable_frames(wild, calibration, inverse_settings.roles, 1)
-            ei.usable_frames(studio, calibration, inverse_settings.roles, 1, inverse_settings.sync_patterns)
+            ei.usable_frames(loaded.wild, calibration, roles, 1)
+            ei.usable_frames(loaded.studio, calibration, roles, 1, loaded.settings.sync_patterns)
 
         def write(writer: ArtifactWriter, cfg: Config) -> None:
             if writer.single_file:
@@ -158,7 +174,8 @@ class EnvmapCommands:
         return self.run.produce(out, "envmap", write, inputs=inputs, source_files=sources, options=options)
 
 
-def _write_envmap(writer: ArtifactWriter, cfg: Config, capture, calibration, sequence, settings, loaded) -> None:
+def _write_envmap(writer: ArtifactWriter, cfg: Config, capture, calibration, sequence, settings,
+                  loaded: LoadedInverse | None) -> None:
     import time
 
     from egorelight_cli.io.exr import write_exr_layers
@@ -237,7 +254,7 @@ def _write_envmap(writer: ArtifactWriter, cfg: Config, capture, calibration, seq
     writer.extra["centre_m"] = [float(c) for c in result.centre]
 
 
-def _inverse(writer: ArtifactWriter, cfg: Config, capture, calibration, result, loaded):
+def _inverse(writer: ArtifactWriter, cfg: Config, capture, calibration, result, loaded: LoadedInverse):
     """Run the inverse rendering, write its curve and preview, record its settings."""
     import json
     import time
@@ -245,12 +262,12 @@ def _inverse(writer: ArtifactWriter, cfg: Config, capture, calibration, result, 
     from egorelight_cli.io.images import write_image
     from egorelight_cli.stages import envmap_inverse as ei
 
-    wild, studio, model, trained_on, settings = loaded
-    reg_max = settings.reg_max if settings.reg_max is not None else ei.auto_reg_max(capture, trained_on)
+    settings = loaded.settings
+    reg_max = settings.reg_max if settings.reg_max is not None else ei.auto_reg_max(capture, loaded.trained_on)
     started = time.perf_counter()
     with torch.enable_grad():
-        inverse = ei.inverse_render(model, wild, studio, calibration, result.inpainted, settings, int(cfg.seed),
-                                    reg_max)
+        inverse = ei.inverse_render(loaded.model, loaded.wild, loaded.studio, calibration, result.inpainted, settings,
+                                    int(cfg.seed), reg_max)
     writer.timing["inverse_s"] = round(time.perf_counter() - started, 3)
     if inverse.flow_note:
         console.info(inverse.flow_note)
@@ -268,12 +285,12 @@ def _inverse(writer: ArtifactWriter, cfg: Config, capture, calibration, result, 
         "near_excluded_fraction": float(np.nanmean([v.near_fraction for v in inverse.views])),
         "colour_sync_residual_l1": {r: s["residual_l1"] for r, s in inverse.sync.items()},
         "colour_sync_gain": {r: s["gain"] for r, s in inverse.sync.items()},
-        "sync_sequence": studio.sequence.name,
+        "sync_sequence": loaded.studio.sequence.name,
     })
     writer.extra["observed_mask"] = ("render mask eroded by inverse.mask_erode_px, without pixels whose rendered depth is "
                                      "under inverse.min_depth_m, intersected with forward-backward "
                                      "consistent flow and unclipped ego pixels (no ground truth)")
-    write_image(writer.path(INVERSE_PREVIEW_PNG), inverse_preview(model, wild, inverse))
+    write_image(writer.path(INVERSE_PREVIEW_PNG), inverse_preview(loaded.model, loaded.wild, inverse))
     return inverse
 
 
