@@ -25,8 +25,9 @@ def _one(preset: str, frames: int) -> dict:
         started = time.perf_counter()
         SynthCommand(StageRun("synth", preset=preset, sets=sets, force=True))(out, None, (), None)
         wall = time.perf_counter() - started
-        metrics = open_artifact(out).metrics
-    per = metrics["render_s_per_frame_per_camera"]
+        artifact = open_artifact(out)
+        metrics = artifact.metrics
+    per = artifact.manifest["timing"]["render_s_per_frame_per_camera"]
     return {
         "frames": metrics["frames"],
         "wall_s": round(wall, 2),

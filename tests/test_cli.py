@@ -67,3 +67,17 @@ def test_usage_errors_are_one_line_exit_2():
 def test_version():
     result = run("--version")
     assert result.returncode == 0 and "egorelight" in result.stdout
+
+
+def test_an_option_and_a_set_of_its_key_must_agree(tmp_path):
+    """``--solver`` is shorthand for ``--set solver=...``: both given and disagreeing is an error
+    (the option won silently); both agreeing, in any YAML spelling, is fine."""
+    assert_one_line_error(run("ik", "--in", str(tmp_path / "k.npz"), "--solver", "lbfgs", "--set", "solver=lm",
+                              "--out", str(tmp_path / "m")), "--solver sets solver=lbfgs", "--set solver=lm")
+    assert_one_line_error(run("train", "egopose", "--no-jitter", "--set", "train.colour_jitter=true", "--capture",
+                              str(tmp_path), "--calibration", str(tmp_path), "--out", str(tmp_path / "e")),
+                          "--no-jitter")
+    agreeing = run("train", "egopose", "--no-jitter", "--set", "train.colour_jitter=False", "--capture", str(tmp_path),
+                   "--calibration", str(tmp_path), "--out", str(tmp_path / "e"))
+    assert_one_line_error(agreeing, "not a finished egorelight artifact")  # past the options, to the capture
+    assert not (tmp_path / "m").exists() and not (tmp_path / "e").exists()

@@ -382,11 +382,12 @@ def test_cli_wild_truth_is_scored_in_the_frame_of_the_trackers_head_poses(run, t
                                                                          tmp_path):
     """Keypoints placed by head poses in a tracker's own world (one yaw and shift off the truth's)
     are scored against the truth taken into that world when ``--calibration`` says so; without it
-    they miss by metres. A ``--calibration`` without a ground-truth folder is a one-line error."""
+    they miss by metres, so keypoints that record the calibration that placed them are refused
+    without it. A ``--calibration`` without a ground-truth folder is a one-line error."""
     import json
     from dataclasses import replace
 
-    from egorelight_cli.artifacts import ArtifactWriter
+    from egorelight_cli.artifacts import ArtifactWriter, open_artifact
     from egorelight_cli.geometry.cameras import transform_points
     from egorelight_cli.geometry.equirect import yaw_rotation
     from egorelight_cli.geometry.rigid import rigid
@@ -402,8 +403,12 @@ def test_cli_wild_truth_is_scored_in_the_frame_of_the_trackers_head_poses(run, t
         write_calibration(writer.workdir, tracker)
     folder = tiny_capture / "groundtruth" / "wild"
     truth = read_keypoints_npz(folder / "keypoints.npz")
+    placed = replace(truth, xyz=transform_points(T_tracker_from_world, truth.xyz))
     with ArtifactWriter(tmp_path / "keypoints", kind="keypoints", stage="egopose", config={}) as writer:
-        save_keypoints(writer, replace(truth, xyz=transform_points(T_tracker_from_world, truth.xyz)))
+        save_keypoints(writer, placed)  # no provenance: what placed them cannot be told
+    with ArtifactWriter(tmp_path / "keypoints_posed", kind="keypoints", stage="egopose", config={},
+                        inputs=[open_artifact(tmp_path / "calibration")]) as writer:
+        save_keypoints(writer, placed)  # as egopose records it: placed by this calibration's head poses
     common = ("ik", "--preset", "tiny", "--in", tmp_path / "keypoints", "--gt", folder)
     for flags, out in ((("--calibration", tmp_path / "calibration"), "posed"), ((), "plain")):
         result = run(*common, *flags, "--out", tmp_path / out)
@@ -411,6 +416,9 @@ def test_cli_wild_truth_is_scored_in_the_frame_of_the_trackers_head_poses(run, t
     posed, plain = (json.loads((tmp_path / out / "manifest.json").read_text())["metrics"] for out in ("posed", "plain"))
     assert posed["gt_mpjpe_body_cm"] < 5.0 and plain["gt_mpjpe_body_cm"] > 100.0, (posed, plain)
     assert "own world" in posed["groundtruth_frame"] and "gt_dof_error_deg" not in posed
+    assert_one_line_error(run("ik", "--preset", "tiny", "--in", tmp_path / "keypoints_posed", "--gt", folder,
+                              "--out", tmp_path / "unposed"), "give --calibration")
+    assert not (tmp_path / "unposed").exists()
     assert_one_line_error(run("ik", "--in", tmp_path / "keypoints", "--gt", folder / "keypoints.npz",
                               "--calibration", tmp_path / "calibration", "--out", tmp_path / "bad"),
                           "--calibration needs --gt to be a capture/groundtruth/<seq> folder")

@@ -68,7 +68,9 @@ def test_inspect_reports_missing_and_modified_payloads(run, character_copy):
     (character_copy / "template.obj").unlink()
     problems = {(p["problem"], Path(p["path"]).name) for p in describe(character_copy)["payload_problems"]}
     assert problems == {("modified", "character.npz"), ("missing", "template.obj")}
-    assert run("inspect", character_copy).returncode == 0  # a report, not a failure
+    result = run("inspect", character_copy)  # the description, then a health check's exit code
+    assert "MODIFIED" in result.stdout and "MISSING" in result.stdout
+    assert result.returncode == 2 and result.stderr.count("\n") == 1 and "2 payload(s) missing or modified" in result.stderr
 
 
 def test_inspect_text_names_bad_payloads(character_copy):

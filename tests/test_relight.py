@@ -186,6 +186,7 @@ def test_relight_into_named_and_virtual_cameras(tiny_capture, skinned_meshes, re
     named = json.loads((tmp_path / "named" / "manifest.json").read_text())["metrics"]
     virtual = json.loads((tmp_path / "virtual" / "manifest.json").read_text())["metrics"]
     assert named["cameras"] == [name] and np.isfinite(named["psnr"])
+    assert not (tmp_path / "named" / "gaussians").exists()  # no --export ply: no (empty) gaussians folder
     assert virtual["cameras"] == ["orbit"] and virtual["scored"].startswith("no") and "psnr" not in virtual
     frames = sorted(p.name for p in (tmp_path / "named" / name).glob("*.exr"))
     assert frames and frames == sorted(p.name for p in (tmp_path / "virtual" / "orbit").glob("*.exr"))

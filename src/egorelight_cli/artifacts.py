@@ -19,13 +19,12 @@ re-running a stage whose output already carries the same key is skipped unless f
 from __future__ import annotations
 
 import datetime as _dt
-import glob
+import errno
 import hashlib
 import json
 import os
 import shutil
 import socket
-import uuid
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import lru_cache
@@ -37,6 +36,8 @@ import numpy as np
 from referencing import Registry, Resource
 
 from egorelight_cli import __version__
+from egorelight_cli.atomic_output import (output_error, remove_stale_temporaries, replace_directory,
+                                          replace_file_pair, temporary_sibling)
 from egorelight_cli.digest_cache import cached_sha256_file, sha256_file  # noqa: F401 (re-exported)
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.io.npz import write_npz
@@ -306,9 +307,6 @@ def resolve_payload(path: str | Path, kind: str, payload: str, what: str):
 
 
 # ----------------------------------------------------------------------------------- writing
-TEMPORARY_TAGS = ("tmp", "old")  # work directory of a writer; previous artifact being replaced
-
-
 def check_sequence(artifact: Artifact | None, sequence: str) -> None:
     """An EgorelightError when ``artifact`` was made for another sequence than ``sequence`` (its
     manifest's ``config.options.sequence``, trusted only when the artifact was made from a capture:
@@ -321,91 +319,6 @@ def check_sequence(artifact: Artifact | None, sequence: str) -> None:
     if recorded is not None and str(recorded) != str(sequence):
         raise EgorelightError(f"was made for sequence {recorded!r}, not {sequence!r} (inputs of two sequences "
                               "mixed up?)", artifact.path)
-
-
-def temporary_sibling(path: str | Path, tag: str = "tmp", suffix: str = "") -> Path:
-    """A hidden sibling ``.<name>.<tag>-<pid>-<random><suffix>`` of ``path`` for atomic writes;
-    the pid lets :func:`remove_stale_temporaries` tell a killed run's leftovers from a live one's."""
-    path = Path(path)
-    return path.with_name(f".{path.name}.{tag}-{os.getpid()}-{uuid.uuid4().hex[:8]}{suffix}")
-
-
-def _process_alive(pid: int) -> bool:
-    if pid == os.getpid():
-        return True
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except (PermissionError, OverflowError):
-        return True
-    return True
-
-
-def remove_stale_temporaries(path: str | Path) -> list[Path]:
-    """Remove the temporary siblings of ``path`` (:func:`temporary_sibling`) left by runs that were
-    killed: those whose process is gone, and those of the older ``<tag>-<random>`` naming without a
-    pid. Returns what was removed."""
-    path = Path(path)
-    removed = []
-    for tag in TEMPORARY_TAGS:
-        for match in glob.glob(str(path.with_name(f".{glob.escape(path.name)}.{tag}-*"))):
-            leftover = Path(match)
-            parts = leftover.name[len(path.name) + len(tag) + 3:].split("-")
-            if len(parts) >= 2 and parts[0].isdigit() and _process_alive(int(parts[0])):
-                continue
-            if leftover.is_dir() and not leftover.is_symlink():
-                shutil.rmtree(leftover, ignore_errors=True)
-            else:
-                leftover.unlink(missing_ok=True)
-            removed.append(leftover)
-    return removed
-
-
-def replace_directory(workdir: Path, out: Path) -> None:
-    """Move the finished directory ``workdir`` (a :func:`temporary_sibling` of ``out``) to ``out``
-    after syncing it to disk; a previous ``out`` directory is swapped aside and removed, so
-    ``out`` is at every moment either the old or the new directory."""
-    _fsync_tree(workdir)
-    old = None
-    if out.exists():
-        if not out.is_dir():
-            raise EgorelightError("output exists and is not a directory", out)
-        old = temporary_sibling(out, "old")
-        os.replace(out, old)
-    os.replace(workdir, out)
-    _fsync_dir(out.parent)
-    if old is not None:
-        shutil.rmtree(old, ignore_errors=True)
-
-
-def output_error(exc: OSError, out: str | Path) -> EgorelightError:
-    """A one-line error for an output that cannot be written (read-only, name too long, ...)."""
-    return EgorelightError(f"cannot write the output ({exc.strerror or exc})", exc.filename or out)
-
-
-def _fsync_tree(root: Path) -> None:
-    for dirpath, _dirs, files in os.walk(root):
-        for name in files:
-            fd = os.open(os.path.join(dirpath, name), os.O_RDONLY)
-            try:
-                os.fsync(fd)
-            finally:
-                os.close(fd)
-    _fsync_dir(root)
-
-
-def _fsync_dir(path: Path) -> None:
-    try:
-        fd = os.open(path, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
 
 
 def _array_entry(path: Path) -> dict[str, Any]:
@@ -569,17 +482,12 @@ class ArtifactWriter:
         replace_directory(self.workdir, self.out)
 
     def _commit_single(self, manifest: dict) -> None:
-        sidecar = self.out.with_name(self.out.name + SIDECAR_SUFFIX)
         entry = manifest["outputs"][0]
         entry["path"] = self.out.name
         tmp_sidecar = self.workdir / (self.out.name + SIDECAR_SUFFIX)
         tmp_sidecar.write_text(json.dumps(manifest, indent=2) + "\n")
-        _fsync_tree(self.workdir)
-        # Payload first, sidecar last: until the new sidecar lands, the old sidecar's digest no
-        # longer matches the payload, and open_artifact() (which verifies single files) refuses it.
-        os.replace(self.workdir / self.out.name, self.out)
-        os.replace(tmp_sidecar, sidecar)
-        _fsync_dir(self.out.parent)
+        replace_file_pair(self.workdir / self.out.name, tmp_sidecar, self.out,
+                          self.out.with_name(self.out.name + SIDECAR_SUFFIX))
         shutil.rmtree(self.workdir, ignore_errors=True)
 
     def abort(self) -> None:
@@ -597,7 +505,16 @@ class ArtifactWriter:
                     self.abort()
         else:
             self.abort()
+            if isinstance(exc, OSError) and self._is_output_failure(exc):
+                raise output_error(exc, self.out) from None
         return False
+
+    def _is_output_failure(self, exc: OSError) -> bool:
+        """Whether ``exc`` came from writing the output: the disk or quota is full, or it names a
+        file of the work directory."""
+        if exc.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG):
+            return True
+        return exc.filename is not None and Path(os.fsdecode(exc.filename)).is_relative_to(self.workdir)
 
 
 def _with_param(entry: dict, param: str | None) -> dict:

@@ -23,6 +23,7 @@ from egorelight_cli.declarations import COMMANDS
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.stage_spec import Command, Input, Option, Output
 from egorelight_cli.runtime import DEVICES, parse_threads
+from egorelight_cli.signals import Terminated, terminate_as_exception
 
 
 @dataclass
@@ -100,11 +101,15 @@ def cli() -> None:
 @common_options
 def inspect_command(path: Path, as_json: bool) -> None:
     """Say what an artifact, manifest, npz, EXR or PNG is: kind, version, arrays, metrics and
-    the chain of inputs it was made from."""
+    the chain of inputs it was made from. Exits 2 after the description when a payload of the
+    artifact is missing or no longer matches its manifest (a health check)."""
     from egorelight_cli.inspect import describe, format_description
 
     info = describe(path)
     click.echo(json.dumps(info, indent=2) if as_json else format_description(info))
+    problems = info.get("payload_problems") or []
+    if problems:
+        raise EgorelightError(f"{len(problems)} payload(s) missing or modified, the first {problems[0]['path']}", path)
 
 
 # ------------------------------------------------------------------------------------- report
@@ -152,9 +157,26 @@ def _stage_run(ctx: click.Context, declared: Command, values: dict):
     from egorelight_cli.pipeline import StageRun
 
     opts = _options(ctx)
-    return StageRun(declared.stage, preset=opts.preset, sets=(*opts.sets, *declared.config_sets(values)),
+    shorthand = declared.config_sets(values)
+    given = {item.split("=", 1)[0].strip(): item for item in opts.sets}
+    for item in shorthand:  # an option and a --set of the key it stands for must agree
+        key = item.split("=", 1)[0]
+        if key in given and _yaml_value(given[key]) != _yaml_value(item):
+            option = next(o.flag for o in declared.options if o.config_key == key)
+            raise EgorelightError(f"{option} sets {item} but --set {given[key]} says otherwise: give one of them")
+    return StageRun(declared.stage, preset=opts.preset, sets=(*opts.sets, *shorthand),
                     seed=opts.seed, force=opts.force, device=opts.device, threads=opts.threads,
                     training=declared.training, command=declared, values=values)
+
+
+def _yaml_value(item: str):
+    """The value of a ``key=value`` item as the config reads it (``False`` and ``false`` agree)."""
+    import yaml
+
+    try:
+        return yaml.safe_load(item.split("=", 1)[1])
+    except yaml.YAMLError:
+        return item.split("=", 1)[1].strip()
 
 
 def _path_type(dir_okay: bool = True, file_okay: bool = True, exists: bool = False) -> click.Path:
@@ -236,7 +258,8 @@ def main(argv: list[str] | None = None) -> None:
     """Console-script entry: maps failures to one line and an exit code."""
     console.set_verbosity(console.NORMAL)  # -q/-v of an earlier in-process call must not leak into this one
     try:
-        cli.main(args=argv, prog_name="egorelight", standalone_mode=False)
+        with terminate_as_exception():  # SIGTERM cleans up like Ctrl-C (egorelight_cli.signals)
+            cli.main(args=argv, prog_name="egorelight", standalone_mode=False)
         code = 0
     except click.exceptions.Exit as exc:
         code = exc.exit_code
@@ -261,6 +284,9 @@ def main(argv: list[str] | None = None) -> None:
     except KeyboardInterrupt:
         click.echo("egorelight: interrupted", err=True)
         code = 130
+    except Terminated:
+        click.echo("egorelight: terminated", err=True)
+        code = 143
     except Exception as exc:  # a bug: one line, the traceback with -v
         if console.verbosity() > 0:
             traceback.print_exc()

@@ -19,6 +19,7 @@ from typing import Any
 
 from egorelight_cli import console
 from egorelight_cli.artifacts import Artifact, ArtifactWriter, cache_key, cached_sha256_file, is_up_to_date
+from egorelight_cli.atomic_output import output_error, remove_stale_temporaries
 from egorelight_cli.config import Config, resolve_config
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.outputs import check_output
@@ -171,6 +172,11 @@ class StageRun:
         device = self.compute_device()
         check_output(out, kind, [p for a in inputs for p in (a.path, a.manifest_path)] + list(source_files),
                      self.stage)
+        # a killed run's leftovers: its previous output put back (it may be up to date), the rest removed
+        try:
+            remove_stale_temporaries(out)
+        except OSError as exc:
+            raise output_error(exc, out) from None
         if self.up_to_date(out, kind, inputs, source_files, options):
             return out
         group = self._join_process_group(device)

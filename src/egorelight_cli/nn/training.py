@@ -24,6 +24,7 @@ from pathlib import Path
 import torch
 
 from egorelight_cli import console
+from egorelight_cli.atomic_output import remove_stale_temporaries, temporary_sibling
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.nn.distributed import average_gradients, average_values, world
 
@@ -113,12 +114,17 @@ def save_checkpoint(checkpoint: Checkpoint, model: torch.nn.Module, optimizer: t
     and the validation selection's state."""
     path = Path(checkpoint.path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    torch.save({"model": model.state_dict(), "optimizer": optimizer.state_dict(),
-                "scheduler": scheduler.state_dict() if scheduler is not None else None, "step": step, "curve": curve,
-                "torch_rng": torch.get_rng_state(), "key": checkpoint.key,
-                "selection": selection.state() if selection is not None else None}, tmp)
-    os.replace(tmp, path)
+    remove_stale_temporaries(path)  # a save a kill interrupted
+    tmp = temporary_sibling(path)
+    try:
+        torch.save({"model": model.state_dict(), "optimizer": optimizer.state_dict(),
+                    "scheduler": scheduler.state_dict() if scheduler is not None else None, "step": step,
+                    "curve": curve, "torch_rng": torch.get_rng_state(), "key": checkpoint.key,
+                    "selection": selection.state() if selection is not None else None}, tmp)
+        os.replace(tmp, path)
+    except BaseException:  # interrupted mid-save: the previous checkpoint stands, no half file beside it
+        tmp.unlink(missing_ok=True)
+        raise
 
 
 def load_checkpoint(checkpoint: Checkpoint, model: torch.nn.Module, optimizer: torch.optim.Optimizer,

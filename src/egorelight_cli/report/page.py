@@ -14,7 +14,7 @@ from pathlib import Path
 from urllib.parse import quote
 
 from egorelight_cli import __version__
-from egorelight_cli.artifacts import remove_stale_temporaries, replace_directory, temporary_sibling
+from egorelight_cli.atomic_output import remove_stale_temporaries, replace_directory, temporary_sibling
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.report.charts import bar_chart
 from egorelight_cli.report.discover import OTHER, STAGES, Found, StageInfo, discover, loose_previews

@@ -46,7 +46,8 @@ from egorelight_cli.structures.motion import Motion
 from egorelight_cli.io.pointcloud import POINTCLOUD_PAYLOAD
 from egorelight_cli.pipeline import StageRun
 from egorelight_cli.sharding import split_frames
-from egorelight_cli.stages.character_commands import character_sources, load_character
+from egorelight_cli.stages.character_commands import (CHARACTER_FINGERPRINT, character_sources,
+                                                      check_same_character, load_character)
 from egorelight_cli.structures.character import Character
 
 # torch and the stage module load only past the cache check (importing torch alone takes seconds;
@@ -64,6 +65,7 @@ EXPORT_DIR = "export"
 def _load_motion(path: Path, character: Character) -> tuple[Motion, Artifact | None]:
     motion, artifact = load_motion(path)
     motion.check_dofs(character.skeleton.dof_names, path)
+    check_same_character(artifact, character, "motion")
     if motion.num_frames == 0:
         raise EgorelightError("motion holds no frames", path)
     return motion, artifact
@@ -117,6 +119,7 @@ def load_animate_model(path: Path, character: Character, device) -> tuple[Animat
     if artifact.single_file:
         raise EgorelightError("an animate model is a directory artifact", path)
     payload = read_model(artifact.root, stage=ANIMATE_MODEL_TYPE)
+    check_same_character(artifact, character, "animate model")
     extra = payload.extra
     if int(extra.get("num_vertices", -1)) != character.num_vertices or int(extra.get("num_nodes", -1)) != character.graph.num_nodes:
         raise EgorelightError(f"model was trained for a character with {extra.get('num_vertices')} vertices and "
@@ -222,6 +225,7 @@ class AnimateCommands:
             write_model(writer.workdir, ModelPayload(ANIMATE_MODEL_TYPE, model.settings.to_dict(),
                                                      model.net.state_dict(), extra, curve),
                         curve_title="train animate: loss terms")
+            writer.extra[CHARACTER_FINGERPRINT] = character.fingerprint()
             writer.metrics.update({"training_frames": int(len(data.frame_ids)), "training_motions": len(motions),
                                    "steps": settings.steps,
                                    "no_depth": bool(no_depth), "frames_with_cloud": cloud_frames,

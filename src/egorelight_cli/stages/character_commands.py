@@ -16,8 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from egorelight_cli.artifacts import (Artifact, ArtifactWriter, manifest_path_for, open_artifact,
-                                      remove_stale_temporaries, temporary_sibling)
+from egorelight_cli.artifacts import Artifact, ArtifactWriter, manifest_path_for, open_artifact
+from egorelight_cli.atomic_output import remove_stale_temporaries, replace_directory, temporary_sibling
 from egorelight_cli.config import Config
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.io.character import default_character_path, read_character_npz, write_character_npz
@@ -53,6 +53,28 @@ def load_character(spec: str | Path) -> tuple[Character, Artifact | None]:
         return read_character_npz(path), None
     artifact = open_artifact(path, kind="character")
     return read_character_npz(artifact.output(CHARACTER_PAYLOAD) if not artifact.single_file else artifact.path), artifact
+
+
+CHARACTER_FINGERPRINT = "character_fingerprint"  # a manifest key (Character.fingerprint), from writer.extra
+
+
+def check_same_character(artifact: Artifact | None, character: Character, what: str) -> None:
+    """Error when ``artifact`` (a motion, a model) records the fingerprint of another character
+    than ``character``: posed with another template or skeleton it would run and be wrong (the
+    default character in place of the subject's fitted one has the same topology). Artifacts from
+    before the fingerprint, and files that are not artifacts, are not checked."""
+    if artifact is None:
+        return
+    recorded = artifact.manifest.get(CHARACTER_FINGERPRINT)  # writer.extra lands at the top level
+    if recorded is None or recorded == character.fingerprint():
+        return
+    entries = artifact.manifest.get("inputs", []) + artifact.manifest.get("sources", [])
+    paths = [Path(os.path.normpath(artifact.root / e["path"])) for e in entries]  # absolute ones stay as they are
+    named = [p for p, e in zip(paths, entries) if e.get("param") == "--character"]
+    hint = (f" ({named[0]})" if named else f" ({DEFAULT_CHARACTER_NAME})" if default_character_path() in paths
+            else "")
+    raise EgorelightError(f"the {what} was made with another character{hint}: give that one with --character",
+                          artifact.path)
 
 
 def rest_pose_error_m(character: Character) -> float:
@@ -94,16 +116,6 @@ def write_character(writer: ArtifactWriter, character: Character, **meta) -> Non
                   face_uvs=character.face_uvs, vertex_colors=character.vertex_colors)
     writer.units.update({"length": "m", "angle": "rad"})
     writer.metrics.update(character_metrics(character))
-
-
-def _replace_atomically(tmp: Path, target: Path) -> None:
-    if target.is_dir():
-        old = temporary_sibling(target, "old")
-        os.replace(target, old)
-        os.replace(tmp, target)
-        shutil.rmtree(old, ignore_errors=True)
-    else:
-        os.replace(tmp, target)
 
 
 def _character_paths(spec: str | Path, artifact: Artifact | None) -> list[Path]:
@@ -159,7 +171,7 @@ class CharacterCommands:
         tmp.mkdir()
         try:
             write_ddc_character(character, tmp, name=name)
-            _replace_atomically(tmp, out_dir)
+            replace_directory(tmp, out_dir)
         finally:
             shutil.rmtree(tmp, ignore_errors=True)
         return out_dir / f"{name}.character"

@@ -76,7 +76,7 @@ from egorelight_cli.geometry.rigid import kabsch_rotations
 from egorelight_cli.geometry.rotations import axis_angle_rotation
 from egorelight_cli.geometry.skeleton import forward_kinematics
 from egorelight_cli.structures.keypoints import Keypoints
-from egorelight_cli.stages.ik_eval import fit_metrics, fitted_keypoints, gt_metrics, jitter_m
+from egorelight_cli.stages.ik_eval import fit_metrics, fitted_keypoints, gt_metrics, jitter_m, solve_timing
 from egorelight_cli.stages.ik_model import (
     IK_MODEL_PAYLOAD, IK_MODEL_TYPE, DofGroups, HandPCA, IKModel, clamp_to_limits,
     classify_dofs, default_ik_model, fit_pca, synthetic_hand_poses, train_ik_model,
@@ -91,7 +91,7 @@ from egorelight_cli.structures.skeleton import REVOLUTE
 __all__ = [
     "IKSettings", "IKModel", "IKResult", "StageReport", "DofGroups", "HandPCA", "IK_MODEL_TYPE", "IK_MODEL_PAYLOAD",
     "classify_dofs", "clamp_to_limits", "synthetic_hand_poses", "fit_pca", "default_ik_model", "train_ik_model",
-    "check_keypoints_for", "solve_ik", "fitted_keypoints", "fit_metrics", "gt_metrics", "jitter_m",
+    "check_keypoints_for", "solve_ik", "fitted_keypoints", "fit_metrics", "solve_timing", "gt_metrics", "jitter_m",
     "SCALE_BONES", "fit_global_scale", "scale_keypoints",
 ]
 

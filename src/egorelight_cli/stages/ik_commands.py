@@ -31,6 +31,7 @@ each hand's PCA per component).
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -38,7 +39,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
-from egorelight_cli.artifacts import Artifact, ArtifactWriter, MANIFEST_NAME, check_sequence
+from egorelight_cli.artifacts import KIND_PREFIX, MANIFEST_NAME, Artifact, ArtifactWriter, check_sequence
 from egorelight_cli.config import Config
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.io.keypoints import load_keypoints
@@ -46,10 +47,11 @@ from egorelight_cli.structures.keypoints import Keypoints
 from egorelight_cli.io.motion import load_motion, save_motion
 from egorelight_cli.structures.motion import Motion
 from egorelight_cli.pipeline import StageRun
-from egorelight_cli.stages.character_commands import character_sources
+from egorelight_cli.stages.character_commands import (CHARACTER_FINGERPRINT, character_sources,
+                                                      check_same_character)
 from egorelight_cli.stages.ik import (IK_MODEL_TYPE, IKModel, IKResult, IKSettings, default_ik_model,
                                       fit_global_scale, fit_metrics, fitted_keypoints, gt_metrics, scale_keypoints,
-                                      solve_ik, train_ik_model)
+                                      solve_ik, solve_timing, train_ik_model)
 from egorelight_cli.structures.character import Character
 
 if TYPE_CHECKING:
@@ -112,6 +114,27 @@ def truth_folder_sequence(gt_path: Path | None) -> str | None:
     """The sequence of a capture's ``groundtruth/<seq>`` folder given as ``--gt``; None for anything else."""
     return Path(gt_path).name if gt_path is not None and Path(gt_path).is_dir() \
         and Path(gt_path).parent.name == "groundtruth" else None
+
+
+def _check_truth_frame_given(keypoints: Artifact | None, gt_path: Path) -> None:
+    """Error when keypoints placed by a calibration's head poses in a world of their own (a
+    headset tracker's: ``wild``) are to be scored against a truth folder without ``--calibration``:
+    the two then sit in different worlds and every error is the gap between them (131 cm body
+    MPJPE on the tiny capture's wild, 23 cm with it). Head poses in the studio's world need none."""
+    from egorelight_cli.io.calibration import open_calibration
+
+    sequence = truth_folder_sequence(gt_path)
+    if keypoints is None or sequence is None or not (Path(gt_path) / "head_pose.npz").is_file():
+        return
+    placed_by = [Path(os.path.normpath(keypoints.root / entry["path"]))
+                 for entry in keypoints.manifest.get("inputs") or [] if entry.get("kind") == KIND_PREFIX + "calibration"]
+    if not placed_by or not placed_by[0].exists():  # not placed by a calibration, or it cannot be told
+        return
+    calibration, _ = open_calibration(placed_by[0])
+    if sequence in calibration.head_poses and not calibration.head_poses_in_studio_world(sequence):
+        raise EgorelightError(f"the keypoints were placed by head poses of {placed_by[0]} in a world of their own "
+                              f"(not the studio's): give --calibration {placed_by[0]} with --gt to score them in one "
+                              "frame", gt_path)
 
 
 def _gt_in_pose_frame(calibration_path: Path, gt_path: Path | None, character: Character,
@@ -276,6 +299,8 @@ class IKCommands:
             gt_keypoints, gt_motion, gt_artifacts, gt_sources = load_gt(gt_path, character)
             inputs += gt_artifacts
             sources += gt_sources
+        if calibration_path is None and gt_path is not None:
+            _check_truth_frame_given(source.artifact, gt_path)
         gt_frame = None
         if calibration_path is not None:
             gt_keypoints, gt_motion, gt_frame, calibration_artifact = _gt_in_pose_frame(
@@ -300,7 +325,9 @@ class IKCommands:
             if recon is not None:
                 result = _fit_to_recon(writer, character, result, source.keypoints, recon[0], surface_settings)
             save_motion(writer, result.motion(character.skeleton.dof_names), source=source.info.get("source"))
+            writer.extra[CHARACTER_FINGERPRINT] = character.fingerprint()  # the DoFs pose this character
             writer.metrics.update(fit_metrics(result))
+            writer.timing.update(solve_timing(result))
             writer.metrics.update({k: v for k, v in source.info.items() if k != "source"})
             writer.metrics["input"] = source.info.get("source")
             if gt_keypoints is not None or gt_motion is not None:
@@ -327,6 +354,7 @@ class IKCommands:
         for path in motion_paths:
             motion, artifact = load_motion(path)
             motion.check_dofs(character.skeleton.dof_names, path)
+            check_same_character(artifact, character, "motion")
             motions.append(motion.theta)
             if artifact is not None:
                 inputs.append(artifact)

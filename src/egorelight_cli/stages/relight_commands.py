@@ -306,8 +306,8 @@ def evaluate(model: rl.RelightModel, data: RelightData, views: list[tuple[int, s
                     "": render.colour.numpy(), "diffuse": render.passes["diffuse"].numpy(),
                     "specular": render.passes["specular"].numpy(), "alpha": render.alpha.numpy()[..., None]})
                 write_image(writer.path(f"{stem}.png"), tonemapped["render"])
-                ply = writer.path(f"gaussians/{frame_file(f, '.ply')}")
-                if export_ply and not ply.exists():
+                ply = writer.path(f"gaussians/{frame_file(f, '.ply')}") if export_ply else None
+                if ply is not None and not ply.exists():  # one file per frame, whichever camera came first
                     from egorelight_cli.io.gaussian_ply import write_gaussian_ply
 
                     write_gaussian_ply(ply, avatar.gaussians, rgb=tonemap_for_metrics(avatar.gaussians.colours).numpy())
@@ -465,6 +465,10 @@ class RelightCommands:
         # the sequence's own lighting: its HDR-lit frames and its OLAT/group tail, scored apart
         data, frames, inputs, sources = self._load(capture_path, meshes_path, uvmaps_path, character_spec, seq, net,
                                                    lighting, SCORED_PATTERNS)
+        olat = lighting.entry.get("olat_index") if lighting is not None else None
+        if olat is not None and not 0 <= olat < data.lightstage.num_lights:
+            raise EgorelightError(f"--olat {olat}: the light stage has {data.lightstage.num_lights} lights (0 to "
+                                  f"{data.lightstage.num_lights - 1})", data.capture.lights_path())
         if calibration_path is not None:  # the headset's pixels leave the scores with the head
             from egorelight_cli.io.calibration import open_calibration
 

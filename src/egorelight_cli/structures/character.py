@@ -11,6 +11,7 @@ of the bone's joint. It is stored as one ``character.npz`` (see :meth:`Character
 
 from __future__ import annotations
 
+import hashlib
 import json
 from dataclasses import dataclass, field
 
@@ -150,6 +151,23 @@ class Character:
     @property
     def num_vertices(self) -> int:
         return int(self.vertices.shape[0])
+
+    def fingerprint(self) -> str:
+        """A short hex digest of everything that shapes the posed surface (template, skeleton,
+        skinning, graph, keypoints, UVs, segmentation), not of its name, extras or vertex colours;
+        floats are hashed as float32, so a saved and re-read character keeps its fingerprint.
+        Stages record it beside what they make with a character and compare it where that is
+        used with one (``check_same_character``)."""
+        digest = hashlib.sha256()
+        for key, value in sorted(self.to_arrays().items()):
+            if key in ("name", "extras", "vertex_colors"):
+                continue
+            array = np.asarray(value)
+            if array.dtype.kind == "f":
+                array = array.astype(np.float32)
+            digest.update(f"{key}:{array.dtype.str}:{array.shape};".encode())
+            digest.update(np.ascontiguousarray(array).tobytes())
+        return digest.hexdigest()[:16]
 
     @property
     def has_standard_keypoints(self) -> bool:

@@ -59,6 +59,7 @@ cameras and HMD intrinsics in ``rig/`` carry a seeded calibration error; the tru
 
 from __future__ import annotations
 
+import sys
 import time
 from dataclasses import dataclass, field, replace
 
@@ -466,22 +467,38 @@ def simulate_sequences(writer: ArtifactWriter, rig: Rig, plans: list[SequencePla
     if workers <= 1:
         return {plan.name: simulate_sequence(writer, rig, plan) for plan in plans}
     import multiprocessing
-    from concurrent.futures import ProcessPoolExecutor
 
     threads = max(1, torch.get_num_threads() // workers)
     order = sorted(plans, key=lambda plan: -plan.num_frames)
-    with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"), initializer=_init_worker,
-                             initargs=(threads, console.verbosity())) as pool:
-        futures = {plan.name: pool.submit(_simulate_in_worker, writer, rig, plan) for plan in order}
-        results = {name: future.result() for name, future in futures.items()}
+    pool = multiprocessing.get_context("spawn").Pool(workers, initializer=_init_worker,
+                                                      initargs=(threads, console.verbosity()))
+    try:
+        pending = {plan.name: pool.apply_async(_simulate_in_worker, (writer, rig, plan)) for plan in order}
+        results = {name: result.get() for name, result in pending.items()}
+        pool.close()
+    except BaseException:  # a failure, Ctrl-C or SIGTERM: the workers stop now, not after their sequences
+        pool.terminate()
+        raise
+    finally:
+        pool.join()
     for _, timer in results.values():
         rig.timer.merge(timer)
     return {plan.name: results[plan.name][0] for plan in plans}
 
 
 def _init_worker(threads: int, verbosity: int) -> None:
+    """A worker: its threads and verbosity; Ctrl-C is the parent's to handle (it terminates the
+    pool), and on Linux the worker dies with the parent, whatever kills it."""
+    import signal
+
     from egorelight_cli.runtime import apply_threads
 
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if sys.platform.startswith("linux"):
+        import ctypes
+
+        PR_SET_PDEATHSIG = 1
+        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
     apply_threads(threads)
     console.set_verbosity(verbosity)
 
@@ -513,19 +530,19 @@ def write_capture(writer: ArtifactWriter, cfg: Config, character: Character,
     metrics = simulate_sequences(writer, rig, plans, min(torch.get_num_threads(), len(plans)))
     frames = sum(plan.num_frames for plan in plans)
     write_global_truth(writer, rig, offsets)
-    writer.metrics.update(_summary(metrics, rig.timer, frames))
+    writer.metrics.update(_summary(metrics, frames))
+    per = rig.timer.per_camera_frame()  # timing, not metrics: a re-run must reproduce the manifest's digest
+    writer.timing["render_s_per_frame_per_camera"] = {k: round(v, 4) for k, v in per.items()}
     writer.units.update({"length": "m", "angle": "rad", "studio": "linear radiance (lights' units x exposure)",
                          "ego": "8-bit sRGB"})
     writer.timing["simulate_s"] = round(time.perf_counter() - started, 3)
 
 
-def _summary(per_seq: dict, timer: Timer, frames: int) -> dict:
+def _summary(per_seq: dict, frames: int) -> dict:
     out: dict = {"sequences": per_seq, "frames": frames}
     for key in ("aruco_detection_rate", "aruco_frames_tracked_rate", "board_detection_rate", "ego_body_pixel_fraction",
                 "ego_mean_level", "ego_clipped_fraction"):
         values = [m[key] for m in per_seq.values() if key in m]
         if values:
             out[key] = float(np.mean(values))
-    per = timer.per_camera_frame()
-    out["render_s_per_frame_per_camera"] = {k: round(v, 4) for k, v in per.items()}
     return out
