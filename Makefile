@@ -60,7 +60,9 @@ PREVIEWS  := $(SUBJECT)/previews
 # every core, its sequences rendering side by side, instead of its 1/N share (the cpu demo's synth
 # ran 32 min 11 s on one of two cores, 20 min 33 s on both, byte-identical output)
 $(CAPTURE): STAGE_THREADS = $(if $(and $(filter local,$(SCHEDULER)),$(filter file,$(origin THREADS)),$(MAKE_JOBS)),$(shell nproc),$(THREADS))
-$(CAPTURE): $(STAMP)
+# (order-only on the venv: a reinstall does not re-simulate, and an imported capture, `capture import`, is
+# never replaced: synth refuses to without --force)
+$(CAPTURE): | $(STAMP)
 	$(EGO) $(EGOFLAGS) synth --out $(SUBJECT)/capture
 
 # the person-specific template: the default character registered to the capture's rest-pose scan

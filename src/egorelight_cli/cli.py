@@ -132,6 +132,11 @@ def character_group() -> None:
     """Characters: the shipped default, DDC (Skeletool) import/export, previews, fit to a scan."""
 
 
+@cli.group("capture")
+def capture_group() -> None:
+    """Captures: a real capture converted to the layout made an artifact every stage takes."""
+
+
 @cli.group("train")
 def train_group() -> None:
     """Fit the learned model of a stage (writes a model artifact)."""
@@ -245,7 +250,7 @@ def stage_command(declared: Command) -> click.Command:
 
 
 def _register_stage_commands() -> None:
-    groups = {("character",): character_group, ("train",): train_group}
+    groups = {("character",): character_group, ("capture",): capture_group, ("train",): train_group}
     for declared in COMMANDS:
         groups.get(declared.path[:-1], cli).add_command(stage_command(declared))
 

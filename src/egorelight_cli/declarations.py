@@ -80,6 +80,14 @@ CHARACTER_COMMANDS = (
 )
 
 STAGE_COMMANDS = (
+    Command(("capture", "import"), "capture",
+            "Check a capture converted to the capture layout (rig/, sequences/, DESIGN.md Sec. 5) and make it a "
+            "capture artifact every stage takes.",
+            "egorelight_cli.stages.capture_import:import_command",
+            Output("capture", "Capture directory (the files hard-linked where the disk allows, else copied).",
+                   file_okay=False),
+            inputs=(Input("SOURCE", "source", "The converted capture folder (not an artifact).", files=("folder",),
+                          required=True, argument=True, file_okay=False),)),
     Command(("synth",), "synth", "Simulate a lightstage + HMD capture of a synthetic subject, with ground truth.",
             "egorelight_cli.stages.synth:synth_command",
             Output("capture", "Capture directory.", file_okay=False),

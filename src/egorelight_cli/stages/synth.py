@@ -10,10 +10,11 @@ lighting.
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
 from pathlib import Path
 
-from egorelight_cli.artifacts import Artifact, ArtifactWriter
+from egorelight_cli.artifacts import MANIFEST_NAME, Artifact, ArtifactWriter
 from egorelight_cli.config import Config
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.pipeline import StageRun
@@ -61,6 +62,7 @@ class SynthCommand:
         from egorelight_cli.io.motion import load_motion
         from egorelight_cli.stages.character_commands import load_character
 
+        _keep_an_imported_capture(Path(out), self.run.force)
         subject, character_artifact = load_character(character or "default")
         inputs: list[Artifact] = [a for a in (character_artifact,) if a is not None]
         sources: list[Path] = [Path(p) for p in envmaps]
@@ -75,6 +77,21 @@ class SynthCommand:
             sources.append(Path(character))
         return self.run.produce(out, "capture", lambda w, cfg: synthesize(w, cfg, subject, envmaps, loaded_motion),
                                 inputs=inputs, source_files=sources)
+
+
+def _keep_an_imported_capture(out: Path, force: bool) -> None:
+    """A capture ``capture import`` made (a lab's real one) is not replaced by a simulated one
+    unless ``--force`` says so (make re-runs synth when the venv is reinstalled)."""
+    manifest = out / MANIFEST_NAME
+    if force or not manifest.is_file():
+        return
+    try:
+        stage = json.loads(manifest.read_text()).get("stage")
+    except (OSError, ValueError, AttributeError):
+        return  # not ours to judge here: the output checks that follow say what is wrong
+    if stage != "synth":
+        raise EgorelightError(f"--out holds a capture made by `{stage}`, not a simulated one: synth does not replace "
+                              "it (--force does)", out)
 
 
 def synth_command(run: StageRun, character: str, envmaps: tuple[Path, ...], motion: Path | None, out: Path) -> Path:
