@@ -62,6 +62,40 @@ def test_a_failed_file_pair_swap_puts_the_old_pair_back(tmp_path, monkeypatch):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["m.npz", "m.npz.json", "work"]
 
 
+def test_a_failed_payload_rename_and_a_first_write_leave_nothing_aside(tmp_path, monkeypatch):
+    out, sidecar = _pair(tmp_path / "out", b"old", b"old manifest")
+    new, new_sidecar = _pair(tmp_path / "work", b"new", b"new manifest")
+    _rename_fails(monkeypatch, new, errno.ENOSPC)  # the first of the two new files
+    with pytest.raises(OSError):
+        replace_file_pair(new, new_sidecar, out, sidecar)
+    assert (out.read_bytes(), sidecar.read_bytes()) == (b"old", b"old manifest")
+    assert sorted(p.name for p in out.parent.iterdir()) == ["m.npz", "m.npz.json"]
+    monkeypatch.undo()
+    first = tmp_path / "first"
+    first.mkdir()
+    replace_file_pair(new, new_sidecar, first / "m.npz", first / "m.npz.json")
+    assert sorted(p.name for p in first.iterdir()) == ["m.npz", "m.npz.json"]
+
+
+def test_our_own_pid_on_a_leftover_is_a_killed_runs(tmp_path):
+    """In a container every run may be pid 1: a leftover with our pid is from a run before us."""
+    out = tmp_path / "motion"
+    aside = tmp_path / f".motion.old-{os.getpid()}-0123abcd"
+    aside.mkdir()
+    (aside / "manifest.json").write_text("{}")
+    assert restore_interrupted_swap(out) == [out] and (out / "manifest.json").is_file()
+
+
+def test_only_a_finished_directory_is_put_back(tmp_path, dead_pid):
+    """What lies aside without its manifest was never a finished output: removed, not restored."""
+    out = tmp_path / "motion"
+    aside = tmp_path / f".motion.old-{dead_pid}-0123abcd"
+    aside.mkdir()
+    (aside / "motion.npz").write_bytes(b"half written")
+    assert restore_interrupted_swap(out) == [] and remove_stale_temporaries(out) == [aside]
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_a_directory_a_killed_swap_left_aside_is_put_back(tmp_path, dead_pid):
     out = tmp_path / "motion"
     aside = tmp_path / f".motion.old-{dead_pid}-0123abcd"  # renamed aside, then SIGKILL

@@ -55,6 +55,25 @@ def test_copies_instead_of_links_on_request(converted, tmp_path, run):
     assert (out / lights).stat().st_ino != (converted / lights).stat().st_ino
 
 
+def test_masks_declared_absent_are_not_asked_for_and_linked_folders_are_followed(converted, tmp_path, run):
+    path = converted / "sequences" / "test" / "sequence.json"
+    doc = json.loads(path.read_text())
+    doc["streams"]["masks"] = False  # a lab sequence without subject masks
+    path.write_text(json.dumps(doc))
+    shutil.rmtree(converted / "sequences" / "test" / "masks")
+    ego = converted / "sequences" / "test" / "ego"
+    shutil.move(ego, tmp_path / "frames_elsewhere")  # a large frame folder linked in
+    ego.symlink_to(tmp_path / "frames_elsewhere", target_is_directory=True)
+    out = tmp_path / "capture"
+    assert run("--preset", "tiny", "capture", "import", converted, "--out", out).returncode == 0
+    listed = {o["path"] for o in open_artifact(out, verify=True).manifest["outputs"]}
+    assert any(p.startswith("sequences/test/ego/") for p in listed)
+    assert not any(p.startswith("sequences/test/masks/") for p in listed)
+    inside = run("--preset", "tiny", "capture", "import", converted, "--out", converted / "imported")
+    assert inside.returncode == 2 and "inside the capture folder" in inside.stderr
+    assert not (converted / "imported").exists()
+
+
 def _break(folder, how: str):
     if how == "artifact":
         (folder / "manifest.json").write_text("{}")

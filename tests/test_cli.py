@@ -80,4 +80,6 @@ def test_an_option_and_a_set_of_its_key_must_agree(tmp_path):
     agreeing = run("train", "egopose", "--no-jitter", "--set", "train.colour_jitter=False", "--capture", str(tmp_path),
                    "--calibration", str(tmp_path), "--out", str(tmp_path / "e"))
     assert_one_line_error(agreeing, "not a finished egorelight artifact")  # past the options, to the capture
+    assert_one_line_error(run("ik", "--in", str(tmp_path / "k.npz"), "--solver", "lm", "--set", "solver",
+                              "--out", str(tmp_path / "m")), "solver")  # no "=": the config's error, not a crash
     assert not (tmp_path / "m").exists() and not (tmp_path / "e").exists()

@@ -198,6 +198,23 @@ def test_stale_temporaries_of_killed_runs_are_removed(run, inputs):
     assert sorted(p.name for p in inputs.iterdir() if p.name.startswith(".motion")) == [live.name]
 
 
+def test_an_output_a_kill_left_half_swapped_is_put_back_and_found_up_to_date(run, inputs):
+    """SIGKILL after the new payload of a single-file output landed, before its sidecar: the next
+    run puts the previous pair back before its output checks (which refused a payload without a
+    sidecar) and finds it up to date."""
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    out = inputs / "m.npz"
+    assert run(*IK, "--in", inputs / "k.npz", "--out", out).returncode == 0
+    before = {p.name: p.read_bytes() for p in (out, inputs / "m.npz.json")}
+    os.replace(out, inputs / f".m.npz.old-{int(dead.stdout)}-0123abcd")
+    os.replace(inputs / "m.npz.json", inputs / f".m.npz.json.old-{int(dead.stdout)}-4567cdef")
+    out.write_bytes(b"the new payload, its sidecar never came")
+    again = run(*IK, "--in", inputs / "k.npz", "--out", out)
+    assert again.returncode == 0 and "up to date" in again.stderr, again.stderr
+    assert {p.name: p.read_bytes() for p in (out, inputs / "m.npz.json")} == before
+    assert not [p for p in inputs.iterdir() if ".old-" in p.name]
+
+
 # ---------------------------------------------------------------------------------- device
 def test_cuda_is_refused_by_cpu_only_stages_and_the_device_used_is_recorded(run, inputs):
     assert_refused(run(*IK, "--in", inputs / "k.npz", "--out", inputs / "m", "--device", "cuda"), "--device cuda", "ik")

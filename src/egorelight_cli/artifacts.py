@@ -36,16 +36,14 @@ import numpy as np
 from referencing import Registry, Resource
 
 from egorelight_cli import __version__
-from egorelight_cli.atomic_output import (output_error, remove_stale_temporaries, replace_directory,
-                                          replace_file_pair, temporary_sibling)
+from egorelight_cli.atomic_output import (MANIFEST_NAME, SIDECAR_SUFFIX, output_error, remove_stale_temporaries,
+                                          replace_directory, replace_file_pair, temporary_sibling)
 from egorelight_cli.digest_cache import cached_sha256_file, sha256_file  # noqa: F401 (re-exported)
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.io.npz import write_npz
 from egorelight_cli.resources import schemas_dir
 
 KIND_PREFIX = "egorelight/"
-MANIFEST_NAME = "manifest.json"
-SIDECAR_SUFFIX = ".json"
 BASE_SCHEMA = "manifest.schema.json"
 
 

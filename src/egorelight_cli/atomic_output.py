@@ -22,7 +22,8 @@ from egorelight_cli.errors import EgorelightError
 from egorelight_cli.signals import signals_deferred
 
 TEMPORARY_TAGS = ("tmp", "old")  # work directory of a writer; previous output being replaced
-SIDECAR_SUFFIX = ".json"
+SIDECAR_SUFFIX = ".json"  # a single-file artifact's manifest: <file>.json beside it (egorelight_cli.artifacts)
+MANIFEST_NAME = "manifest.json"  # a directory artifact's manifest: what marks it finished
 
 
 def temporary_sibling(path: str | Path, tag: str = "tmp", suffix: str = "") -> Path:
@@ -33,8 +34,11 @@ def temporary_sibling(path: str | Path, tag: str = "tmp", suffix: str = "") -> P
 
 
 def _process_alive(pid: int) -> bool:
+    """Whether process ``pid`` runs, this one excepted: whatever carries our own pid when we look
+    is a killed run's that had it before us (in a container every run may be pid 1); this
+    process's own temporaries are made after the look."""
     if pid == os.getpid():
-        return True
+        return False
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
@@ -65,15 +69,17 @@ def _remove(path: Path) -> None:
 
 def restore_interrupted_swap(path: str | Path) -> list[Path]:
     """Put back the previous output of ``path`` where a killed swap left it aside: a directory
-    output that is missing, or a payload / sidecar pair of which one is missing. Returns what was
-    restored (the paths put back)."""
+    artifact (it holds its manifest) whose place is empty, or a payload / sidecar pair of which
+    one is missing. Returns what was restored (the paths put back)."""
     path = Path(path)
+    if path.name in ("", ".", ".."):  # not an output's own name: nothing of ours can lie beside it
+        return []
     sidecar = path.with_name(path.name + SIDECAR_SUFFIX)
     aside = {target: _dead_leftovers(target, "old") for target in (path, sidecar)}
     if not aside[path] and not aside[sidecar]:
         return []
     if aside[path] and aside[path][0].is_dir():  # a directory output
-        if path.exists():
+        if path.exists() or not (aside[path][0] / MANIFEST_NAME).is_file():
             return []
         os.replace(aside[path][0], path)
         return [path]
@@ -95,6 +101,8 @@ def remove_stale_temporaries(path: str | Path) -> list[Path]:
     temporary siblings (of ``path`` and of its sidecar) whose process is gone, and those of the
     older ``<tag>-<random>`` naming without a pid. Returns what was removed."""
     path = Path(path)
+    if path.name in ("", ".", ".."):
+        return []
     restore_interrupted_swap(path)
     removed = []
     for target in (path, path.with_name(path.name + SIDECAR_SUFFIX)):
@@ -124,8 +132,8 @@ def replace_directory(workdir: Path, out: Path) -> None:
                 os.replace(old, out)
             raise
         _fsync_dir(out.parent)
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
+    if old is not None:  # outside the deferral: removing a large old output stays interruptible
+        shutil.rmtree(old, ignore_errors=True)
 
 
 def replace_file_pair(payload: Path, sidecar: Path, out: Path, out_sidecar: Path) -> None:

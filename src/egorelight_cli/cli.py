@@ -163,7 +163,8 @@ def _stage_run(ctx: click.Context, declared: Command, values: dict):
 
     opts = _options(ctx)
     shorthand = declared.config_sets(values)
-    given = {item.split("=", 1)[0].strip(): item for item in opts.sets}
+    # (an item without "=" is left to the config, which says what is wrong with it)
+    given = {item.split("=", 1)[0].strip(): item for item in opts.sets if "=" in item}
     for item in shorthand:  # an option and a --set of the key it stands for must agree
         key = item.split("=", 1)[0]
         if key in given and _yaml_value(given[key]) != _yaml_value(item):

@@ -35,6 +35,7 @@ import numpy as np
 
 from egorelight_cli import console
 from egorelight_cli.artifacts import ArtifactWriter, cache_key, is_up_to_date, open_artifact
+from egorelight_cli.atomic_output import restore_interrupted_swap
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.io.images import read_image, write_image
 from egorelight_cli.io.npz import read_npz, write_npz
@@ -252,6 +253,7 @@ def merge_parts(paths, out, force: bool = False, preview_name: str = "preview.pn
     key = cache_key(first["stage"], int(first["stage_version"]), config,
                     [a.digest for a in inputs] + [s["digest"] for s in sources])
     kind = parts[0].kind
+    restore_interrupted_swap(out)  # a merge a kill left half swapped: the previous output first
     check_output(out, kind, [p.path for p in parts] + [a.path for a in inputs])
     if not force and is_up_to_date(out, key, kind):
         console.info(f"{out}: up to date, skipped (--force re-runs it)")

@@ -63,7 +63,7 @@ def signals_deferred() -> Iterator[None]:
     try:
         yield
     finally:
-        for signum, handler in previous.items():
-            signal.signal(signum, handler)
+        for signum, handler in previous.items():  # None: a handler set from C, which Python cannot reinstate
+            signal.signal(signum, handler if handler is not None else signal.SIG_DFL)
         if caught:
             signal.raise_signal(caught[0])

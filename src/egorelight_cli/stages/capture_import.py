@@ -35,10 +35,11 @@ RIG_FILES = ("hmd.json", "studio_cameras.json", "lights.json")
 
 
 def capture_files(source: Path) -> list[Path]:
-    """Every file of the converted capture, relative to ``source``, sorted; hidden files and
-    folders (``.DS_Store``, editors' and killed runs' leftovers) are left out."""
+    """Every file of the converted capture, relative to ``source``, sorted, symbolic links to
+    folders followed (labs link large frame folders in); hidden files and folders (``.DS_Store``,
+    editors' and killed runs' leftovers) are left out."""
     files = []
-    for folder, dirs, names in os.walk(source):
+    for folder, dirs, names in os.walk(source, followlinks=True):
         dirs[:] = sorted(d for d in dirs if not d.startswith("."))
         files += [Path(folder, n).relative_to(source) for n in names if not n.startswith(".")]
     return sorted(files)
@@ -78,9 +79,12 @@ def _check_sequence(capture: Capture, sequence: SequenceInfo, ego_roles: set[str
     expected = [sequence.ego_image_path(role, int(f)) for role in sequence.ego_roles for f in sequence.ego_frame_ids]
     expected += [sequence.studio_image_path(camera, int(f)) for camera in sequence.studio_cameras
                  for f in sequence.frame_ids]
-    roles = capture.studio_camera_roles  # tracking cameras see the headset's markers, not the subject: no masks
-    expected += [sequence.mask_path(camera, int(f)) for camera in sequence.studio_cameras
-                 if roles.get(camera, "studio") == "studio" for f in sequence.frame_ids]
+    if sequence.streams.get("masks"):  # of the subject cameras (tracking cameras see the headset's markers)
+        roles = capture.studio_camera_roles
+        expected += [sequence.mask_path(camera, int(f)) for camera in sequence.studio_cameras
+                     if roles.get(camera, "studio") == "studio" for f in sequence.frame_ids]
+    if sequence.streams.get("mocap"):
+        expected.append(sequence.mocap_path())
     missing = [p for p in expected if not p.is_file()]
     if missing:
         raise EgorelightError(f"{len(missing)} of the {len(expected)} frame files sequence.json implies are missing, "
@@ -112,6 +116,9 @@ def import_command(run: StageRun, source: Path, out: Path) -> Path:
     source = Path(source)
     if not source.is_dir():
         raise EgorelightError("capture folder not found", source)
+    folder, target = source.resolve(), Path(out).resolve()
+    if target.is_relative_to(folder) or folder.is_relative_to(target):
+        raise EgorelightError("--out lies inside the capture folder it imports (or holds it): give another folder", out)
     found = check_capture(source)
     files = capture_files(source)
     console.info(f"capture import: {len(found['sequences'])} sequences, {len(files)} files")

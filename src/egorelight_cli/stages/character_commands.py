@@ -73,8 +73,8 @@ def check_same_character(artifact: Artifact | None, character: Character, what: 
     named = [p for p, e in zip(paths, entries) if e.get("param") == "--character"]
     hint = (f" ({named[0]})" if named else f" ({DEFAULT_CHARACTER_NAME})" if default_character_path() in paths
             else "")
-    raise EgorelightError(f"the {what} was made with another character{hint}: give that one with --character",
-                          artifact.path)
+    raise EgorelightError(f"the {what} was made with another character{hint}: give that one with --character, or "
+                          f"re-make the {what} if that character has changed since", artifact.path)
 
 
 def rest_pose_error_m(character: Character) -> float:

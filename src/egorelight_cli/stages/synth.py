@@ -82,16 +82,21 @@ class SynthCommand:
 def _keep_an_imported_capture(out: Path, force: bool) -> None:
     """A capture ``capture import`` made (a lab's real one) is not replaced by a simulated one
     unless ``--force`` says so (make re-runs synth when the venv is reinstalled)."""
+    from egorelight_cli.atomic_output import restore_interrupted_swap
+
+    if force:
+        return
+    restore_interrupted_swap(out)  # an import a kill left half swapped is judged as the capture it was
     manifest = out / MANIFEST_NAME
-    if force or not manifest.is_file():
+    if not manifest.is_file():
         return
     try:
         stage = json.loads(manifest.read_text()).get("stage")
     except (OSError, ValueError, AttributeError):
         return  # not ours to judge here: the output checks that follow say what is wrong
-    if stage != "synth":
-        raise EgorelightError(f"--out holds a capture made by `{stage}`, not a simulated one: synth does not replace "
-                              "it (--force does)", out)
+    if stage == "capture":
+        raise EgorelightError("--out holds an imported capture (`capture import`), not a simulated one: synth does "
+                              "not replace it (--force does)", out)
 
 
 def synth_command(run: StageRun, character: str, envmaps: tuple[Path, ...], motion: Path | None, out: Path) -> Path:

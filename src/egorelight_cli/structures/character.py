@@ -153,18 +153,21 @@ class Character:
         return int(self.vertices.shape[0])
 
     def fingerprint(self) -> str:
-        """A short hex digest of everything that shapes the posed surface (template, skeleton,
-        skinning, graph, keypoints, UVs, segmentation), not of its name, extras or vertex colours;
-        floats are hashed as float32, so a saved and re-read character keeps its fingerprint.
-        Stages record it beside what they make with a character and compare it where that is
-        used with one (``check_same_character``)."""
+        """A short hex digest of what poses the surface: the rest template and its faces, the
+        skeleton (joints, offsets, DoFs) and the skinning weights, floats rounded to 1e-5 (10 um
+        for lengths), so the same character read from an npz, a DDC file or a float64 copy keeps
+        its fingerprint, while a fitted subject (another shape or skeleton) gets another. Stages
+        record it beside what they make with a character and compare it where that is used with
+        one (``check_same_character``)."""
         digest = hashlib.sha256()
-        for key, value in sorted(self.to_arrays().items()):
-            if key in ("name", "extras", "vertex_colors"):
-                continue
+        arrays = {"vertices": self.vertices, "faces": self.faces, "skin_weights": self.skin_weights,
+                  **self.skeleton.to_arrays()}
+        for key, value in sorted(arrays.items()):
             array = np.asarray(value)
             if array.dtype.kind == "f":
-                array = array.astype(np.float32)
+                array = np.round(array.astype(np.float64), 5) + 0.0  # + 0.0: -0.0 hashes as 0.0
+            elif array.dtype.kind in "iub":
+                array = array.astype(np.int64)
             digest.update(f"{key}:{array.dtype.str}:{array.shape};".encode())
             digest.update(np.ascontiguousarray(array).tobytes())
         return digest.hexdigest()[:16]

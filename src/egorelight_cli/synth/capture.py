@@ -467,23 +467,33 @@ def simulate_sequences(writer: ArtifactWriter, rig: Rig, plans: list[SequencePla
     if workers <= 1:
         return {plan.name: simulate_sequence(writer, rig, plan) for plan in plans}
     import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
 
     threads = max(1, torch.get_num_threads() // workers)
     order = sorted(plans, key=lambda plan: -plan.num_frames)
-    pool = multiprocessing.get_context("spawn").Pool(workers, initializer=_init_worker,
-                                                      initargs=(threads, console.verbosity()))
-    try:
-        pending = {plan.name: pool.apply_async(_simulate_in_worker, (writer, rig, plan)) for plan in order}
-        results = {name: result.get() for name, result in pending.items()}
-        pool.close()
+    pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"), initializer=_init_worker,
+                               initargs=(threads, console.verbosity()))
+    try:  # a worker that dies (out of memory) fails the run with BrokenProcessPool rather than hanging it
+        futures = {plan.name: pool.submit(_simulate_in_worker, writer, rig, plan) for plan in order}
+        results = {name: future.result() for name, future in futures.items()}
     except BaseException:  # a failure, Ctrl-C or SIGTERM: the workers stop now, not after their sequences
-        pool.terminate()
+        _terminate_workers(pool)
         raise
     finally:
-        pool.join()
+        pool.shutdown(wait=True, cancel_futures=True)
     for _, timer in results.values():
         rig.timer.merge(timer)
     return {plan.name: results[plan.name][0] for plan in plans}
+
+
+def _terminate_workers(pool) -> None:
+    """Stop a ProcessPoolExecutor's workers at once (``shutdown`` waits for their running tasks);
+    Python 3.14's ``terminate_workers`` does this, 3.11 keeps them in ``_processes``."""
+    if hasattr(pool, "terminate_workers"):
+        pool.terminate_workers()
+        return
+    for process in list((getattr(pool, "_processes", None) or {}).values()):
+        process.terminate()
 
 
 def _init_worker(threads: int, verbosity: int) -> None:
