@@ -17,14 +17,19 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_an_interrupt_inside_the_deferred_block_arrives_when_it_ends():
-    reached_the_end = False
-    with pytest.raises(KeyboardInterrupt):
-        with signals_deferred():
-            os.kill(os.getpid(), signal.SIGINT)
-            time.sleep(0.05)  # a signal handler runs between bytecodes: it had every chance
-            reached_the_end = True
-    assert reached_the_end
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    # Python's own Ctrl-C handler, whatever this process started with (a shell's background job ignores SIGINT)
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        reached_the_end = False
+        with pytest.raises(KeyboardInterrupt):
+            with signals_deferred():
+                os.kill(os.getpid(), signal.SIGINT)
+                time.sleep(0.05)  # a signal handler runs between bytecodes: it had every chance
+                reached_the_end = True
+        assert reached_the_end
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def test_sigterm_raises_terminated_and_the_handler_is_restored():

@@ -57,7 +57,14 @@ def _dead_leftovers(path: Path, tag: str) -> list[Path]:
         if len(parts) >= 2 and parts[0].isdigit() and _process_alive(int(parts[0])):
             continue
         found.append(leftover)
-    return sorted(found, key=lambda p: p.lstat().st_mtime, reverse=True)
+    return sorted(found, key=_mtime, reverse=True)
+
+
+def _mtime(path: Path) -> float:
+    try:
+        return path.lstat().st_mtime
+    except OSError:  # gone meanwhile (another run cleaned it up)
+        return 0.0
 
 
 def _remove(path: Path) -> None:
