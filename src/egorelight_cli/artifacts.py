@@ -208,6 +208,14 @@ class Artifact:
                                   "half-written)", path)
         return path
 
+    def made_from(self, kind: str | None = None, param: str | None = None) -> list[Path]:
+        """Where the inputs and source files the manifest records were (relative paths taken from
+        this artifact's folder), in the recorded order; only those of artifact ``kind`` (short
+        name) and/or given through ``param`` (``--character``) when said."""
+        entries = (self.manifest.get("inputs") or []) + (self.manifest.get("sources") or [])
+        return [Path(os.path.normpath(self.root / e["path"])) for e in entries  # an absolute path stays as it is
+                if (kind is None or e.get("kind") == KIND_PREFIX + kind) and (param is None or e.get("param") == param)]
+
     def as_input(self, relative_to: str | Path | None = None) -> dict:
         """The manifest ``inputs`` entry for this artifact; ``path`` is relative to
         ``relative_to`` (the consuming manifest's directory) when given."""

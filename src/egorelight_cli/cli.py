@@ -159,30 +159,23 @@ def merge_command(ctx: click.Context, parts: tuple[Path, ...], out: Path) -> Non
 def _stage_run(ctx: click.Context, declared: Command, values: dict):
     """The :class:`~egorelight_cli.pipeline.StageRun` of one declared command: the global options,
     plus the ``--set`` items its config-key options stand for."""
+    from egorelight_cli.config import parse_set
     from egorelight_cli.pipeline import StageRun
 
     opts = _options(ctx)
     shorthand = declared.config_sets(values)
-    # (an item without "=" is left to the config, which says what is wrong with it)
-    given = {item.split("=", 1)[0].strip(): item for item in opts.sets if "=" in item}
-    for item in shorthand:  # an option and a --set of the key it stands for must agree
-        key = item.split("=", 1)[0]
-        if key in given and _yaml_value(given[key]) != _yaml_value(item):
+    given = {}  # key -> (value, the --set item)
+    for item in opts.sets:
+        key, value, _ = parse_set(item)
+        given[key] = (value, item)
+    for item in shorthand:  # an option and a --set of the key it stands for must agree (as the config reads them)
+        key, value, _ = parse_set(item)
+        if key in given and given[key][0] != value:
             option = next(o.flag for o in declared.options if o.config_key == key)
-            raise EgorelightError(f"{option} sets {item} but --set {given[key]} says otherwise: give one of them")
+            raise EgorelightError(f"{option} sets {item} but --set {given[key][1]} says otherwise: give one of them")
     return StageRun(declared.stage, preset=opts.preset, sets=(*opts.sets, *shorthand),
                     seed=opts.seed, force=opts.force, device=opts.device, threads=opts.threads,
                     training=declared.training, command=declared, values=values)
-
-
-def _yaml_value(item: str):
-    """The value of a ``key=value`` item as the config reads it (``False`` and ``false`` agree)."""
-    import yaml
-
-    try:
-        return yaml.safe_load(item.split("=", 1)[1])
-    except yaml.YAMLError:
-        return item.split("=", 1)[1].strip()
 
 
 def _path_type(dir_okay: bool = True, file_okay: bool = True, exists: bool = False) -> click.Path:

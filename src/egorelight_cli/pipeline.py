@@ -19,7 +19,7 @@ from typing import Any
 
 from egorelight_cli import console
 from egorelight_cli.artifacts import Artifact, ArtifactWriter, cache_key, cached_sha256_file, is_up_to_date
-from egorelight_cli.atomic_output import output_error, remove_stale_temporaries, restore_interrupted_swap
+from egorelight_cli.atomic_output import output_error, remove_stale_temporaries
 from egorelight_cli.config import Config, resolve_config
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.outputs import check_output
@@ -170,16 +170,12 @@ class StageRun:
         apply_threads(threads)  # before the stage's work (every command works inside ``write``)
         config = self.config()
         device = self.compute_device()
-        try:  # a swap a kill left half done is undone first: the output checks then see the previous output
-            restore_interrupted_swap(out)
+        try:  # killed runs' leftovers: a half-done swap undone (the output checks then see the previous
+            remove_stale_temporaries(out)  # output, which may be up to date), the rest removed, even if skipped
         except OSError as exc:
             raise output_error(exc, out) from None
         check_output(out, kind, [p for a in inputs for p in (a.path, a.manifest_path)] + list(source_files),
                      self.stage)
-        try:  # the rest of killed runs' leftovers go (before the cache check: a skipped run cleans up too)
-            remove_stale_temporaries(out)
-        except OSError as exc:
-            raise output_error(exc, out) from None
         if self.up_to_date(out, kind, inputs, source_files, options):
             return out
         group = self._join_process_group(device)

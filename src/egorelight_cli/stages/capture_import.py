@@ -28,21 +28,11 @@ from egorelight_cli.artifacts import MANIFEST_NAME, ArtifactWriter
 from egorelight_cli.config import Config
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.io.capture import Capture, SequenceInfo
+from egorelight_cli.io.folders import visible_files
 from egorelight_cli.pipeline import StageRun
 
 #: what a stage needs of the rig (board.json only for calibrate's hand-eye sequence)
 RIG_FILES = ("hmd.json", "studio_cameras.json", "lights.json")
-
-
-def capture_files(source: Path) -> list[Path]:
-    """Every file of the converted capture, relative to ``source``, sorted, symbolic links to
-    folders followed (labs link large frame folders in); hidden files and folders (``.DS_Store``,
-    editors' and killed runs' leftovers) are left out."""
-    files = []
-    for folder, dirs, names in os.walk(source, followlinks=True):
-        dirs[:] = sorted(d for d in dirs if not d.startswith("."))
-        files += [Path(folder, n).relative_to(source) for n in names if not n.startswith(".")]
-    return sorted(files)
 
 
 def check_capture(source: Path) -> dict:
@@ -120,7 +110,7 @@ def import_command(run: StageRun, source: Path, out: Path) -> Path:
     if target.is_relative_to(folder) or folder.is_relative_to(target):
         raise EgorelightError("--out lies inside the capture folder it imports (or holds it): give another folder", out)
     found = check_capture(source)
-    files = capture_files(source)
+    files = [path.relative_to(source) for path in visible_files(source)]  # labs link large frame folders in
     console.info(f"capture import: {len(found['sequences'])} sequences, {len(files)} files")
 
     def write(writer: ArtifactWriter, cfg: Config) -> None:

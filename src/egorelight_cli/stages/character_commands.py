@@ -68,11 +68,9 @@ def check_same_character(artifact: Artifact | None, character: Character, what: 
     recorded = artifact.manifest.get(CHARACTER_FINGERPRINT)  # writer.extra lands at the top level
     if recorded is None or recorded == character.fingerprint():
         return
-    entries = artifact.manifest.get("inputs", []) + artifact.manifest.get("sources", [])
-    paths = [Path(os.path.normpath(artifact.root / e["path"])) for e in entries]  # absolute ones stay as they are
-    named = [p for p, e in zip(paths, entries) if e.get("param") == "--character"]
-    hint = (f" ({named[0]})" if named else f" ({DEFAULT_CHARACTER_NAME})" if default_character_path() in paths
-            else "")
+    named = artifact.made_from(param="--character")
+    hint = (f" ({named[0]})" if named else f" ({DEFAULT_CHARACTER_NAME})"
+            if default_character_path() in artifact.made_from() else "")
     raise EgorelightError(f"the {what} was made with another character{hint}: give that one with --character, or "
                           f"re-make the {what} if that character has changed since", artifact.path)
 

@@ -25,6 +25,7 @@ from egorelight_cli.errors import EgorelightError
 from egorelight_cli.io.calibration import open_calibration
 from egorelight_cli.structures.calibration import Calibration
 from egorelight_cli.io.capture import Capture, frame_file, open_capture
+from egorelight_cli.io.folders import visible_files
 from egorelight_cli.pipeline import StageRun
 from egorelight_cli.sharding import FrameRange
 
@@ -52,8 +53,7 @@ def backbone_sources(backbone: Path | None) -> list[Path]:
     sorted; none without one."""
     if backbone is None:
         return []
-    files = sorted(p for p in Path(backbone).rglob("*") if p.is_file()
-                   and not any(part.startswith(".") for part in p.relative_to(backbone).parts))  # no .git/
+    files = visible_files(backbone)  # no .git/
     if Path(backbone) / "config.json" not in files:
         raise EgorelightError("not a Depth-Anything-V2 model folder (no config.json)", backbone)
     return files

@@ -31,7 +31,6 @@ each hand's PCA per component).
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -39,7 +38,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
-from egorelight_cli.artifacts import KIND_PREFIX, MANIFEST_NAME, Artifact, ArtifactWriter, check_sequence
+from egorelight_cli.artifacts import MANIFEST_NAME, Artifact, ArtifactWriter, check_sequence
 from egorelight_cli.config import Config
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.io.keypoints import load_keypoints
@@ -126,8 +125,7 @@ def _check_truth_frame_given(keypoints: Artifact | None, gt_path: Path) -> None:
     sequence = truth_folder_sequence(gt_path)
     if keypoints is None or sequence is None or not (Path(gt_path) / "head_pose.npz").is_file():
         return
-    placed_by = [Path(os.path.normpath(keypoints.root / entry["path"]))
-                 for entry in keypoints.manifest.get("inputs") or [] if entry.get("kind") == KIND_PREFIX + "calibration"]
+    placed_by = keypoints.made_from(kind="calibration")
     if not placed_by or not placed_by[0].exists():  # not placed by a calibration, or it cannot be told
         return
     calibration, _ = open_calibration(placed_by[0])
