@@ -9,6 +9,7 @@ import shutil
 import pytest
 
 from egorelight_cli.artifacts import open_artifact
+from egorelight_cli.io.images import read_image
 
 
 @pytest.fixture
@@ -29,7 +30,9 @@ def test_a_converted_capture_becomes_an_artifact_the_stages_take(converted, tmp_
     assert result.returncode == 0, result.stderr
     artifact = open_artifact(out, kind="capture", verify=True)  # every file listed and its digest checked
     files = sorted(p.relative_to(converted).as_posix() for p in converted.rglob("*") if p.is_file())
-    assert sorted(o["path"] for o in artifact.manifest["outputs"]) == files
+    assert sorted(o["path"] for o in artifact.manifest["outputs"]) == sorted(files + ["preview.png"])
+    sheet = read_image(out / "preview.png")  # a row per sequence, its first ego and studio frames
+    assert sheet.ndim == 3 and sheet.shape[0] > 100 * len(_sequences(converted)) and sheet.std() > 10
     metrics = artifact.metrics
     assert set(metrics["sequences"]) == _sequences(converted) and metrics["groundtruth"] is False
     assert metrics["files"] == len(files) and metrics["hard_linked_files"] == len(files)  # one disk: no copy

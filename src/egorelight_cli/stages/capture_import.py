@@ -14,7 +14,9 @@ sequence, every sequence description, the cameras and ego roles it names, and th
 file it implies exists (studio images and masks per studio camera and frame, ego images per
 role and ego frame); environment maps its light entries name. A ``groundtruth/`` folder is
 carried along when present (a simulated capture's; only evaluation code reads it). The
-manifest's metrics say what was found: sequences with their frame counts, files and bytes.
+manifest's metrics say what was found: sequences with their frame counts, files and bytes;
+``preview.png`` shows each sequence's first ego frame per role and first studio frame of up to
+three subject cameras (decoding them: a first frame that cannot be read is an error here).
 """
 
 from __future__ import annotations
@@ -22,6 +24,8 @@ from __future__ import annotations
 import os
 import shutil
 from pathlib import Path
+
+import numpy as np
 
 from egorelight_cli import console
 from egorelight_cli.artifacts import MANIFEST_NAME, ArtifactWriter
@@ -31,6 +35,7 @@ from egorelight_cli.io.capture import Capture, SequenceInfo
 from egorelight_cli.io.folders import visible_files
 from egorelight_cli.pipeline import StageRun
 
+PREVIEW_PNG = "preview.png"
 #: what a stage needs of the rig (board.json only for calibrate's hand-eye sequence)
 RIG_FILES = ("hmd.json", "studio_cameras.json", "lights.json")
 
@@ -89,6 +94,25 @@ def _check_sequence(capture: Capture, sequence: SequenceInfo, ego_roles: set[str
             "studio_cameras": len(sequence.studio_cameras)}
 
 
+def preview(capture: Capture) -> np.ndarray:
+    """(H,W,3) uint8 contact sheet: per sequence, its first ego frame of each role and its first
+    studio frame (tone-mapped) of up to three subject cameras (EXR or PNG)."""
+    from egorelight_cli.stages.calibrate_head import studio_image
+    from egorelight_cli.synth.preview import contact_sheet
+
+    rows = []
+    for name in capture.sequence_names():
+        sequence = capture.sequence(name)
+        tiles = [(f"{name} {role}", sequence.read_ego_image(role, int(sequence.ego_frame_ids[0])))
+                 for role in sequence.ego_roles if len(sequence.ego_frame_ids)]
+        subject = [c for c in sequence.studio_cameras if capture.studio_camera_roles.get(c, "studio") == "studio"]
+        for camera in subject[:3] if len(sequence.frame_ids) else []:
+            if sequence.studio_image_path(camera, int(sequence.frame_ids[0])).suffix in (".exr", ".png"):
+                tiles.append((f"{name} {camera}", studio_image(sequence, camera, int(sequence.frame_ids[0]), 99.0)[0]))
+        rows.append(tiles)
+    return contact_sheet(f"imported capture: {len(rows)} sequences", rows)
+
+
 def place(source: Path, target: Path, link: bool) -> bool:
     """Put ``source`` at ``target``: a hard link when ``link`` and the filesystem allows it (True),
     else a copy (False)."""
@@ -116,6 +140,10 @@ def import_command(run: StageRun, source: Path, out: Path) -> Path:
     def write(writer: ArtifactWriter, cfg: Config) -> None:
         if writer.single_file:
             raise EgorelightError("a capture is a directory: give --out a directory", out)
+        from egorelight_cli.io.images import write_image
+
+        if Path(PREVIEW_PNG) not in files:  # (one the source brings is kept as it is)
+            write_image(writer.path(PREVIEW_PNG), preview(Capture(source)))
         linked = sum(place(source / rel, writer.path(rel.as_posix()), bool(cfg.link)) for rel in files)
         size = sum((source / rel).stat().st_size for rel in files)
         writer.metrics.update({**found, "files": len(files), "bytes": size, "hard_linked_files": int(linked)})
