@@ -26,7 +26,7 @@ from egorelight_cli.io.motion import load_motion
 from egorelight_cli.io.npz import read_npz
 from egorelight_cli.render.envmaps import make_envmap, write_envmap
 from egorelight_cli.synth.hmd import EGO_ROLES
-from egorelight_cli.synth.preview import tonemap
+from egorelight_cli.io.images import tonemap
 from egorelight_cli.synth.sequences import PURPOSES, SEQUENCES
 from egorelight_cli.geometry.rigid import interpolate_poses
 

@@ -42,6 +42,7 @@ from egorelight_cli.io.calibration import write_calibration
 from egorelight_cli.structures.calibration import STUDIO_HEAD_POSE_SOURCE, Calibration, EgoCameraCalibration, HeadPoses
 from egorelight_cli.io.capture import Capture, SequenceInfo, open_capture
 from egorelight_cli.pipeline import StageRun
+from egorelight_cli.render.sheets import stack_rows, tile_row
 from egorelight_cli.stages.calibrate_handeye import HandEyeResult, calibrate_hand_eye
 from egorelight_cli.stages.calibrate_head import HeadTrack, project_points, studio_image, track_head
 from egorelight_cli.stages.calibrate_sync import SyncResult, find_stream_offset
@@ -49,6 +50,8 @@ from egorelight_cli.io.tracker import tracker_head_poses
 from egorelight_cli.stages.calibrate_wild import WildResult, align_wild
 
 STAGE = "calibrate"
+#: Height in pixels of an image tile in the marker and board previews.
+PREVIEW_TILE_HEIGHT = 200
 
 
 @dataclass
@@ -218,25 +221,6 @@ def _wild_metrics(root: Path, wild: WildResult) -> dict:
 
 
 # ------------------------------------------------------------------------------------ previews
-def _tile_row(images: list[np.ndarray], height: int = 200) -> np.ndarray:
-    tiles = []
-    for image in images:
-        width = max(1, round(image.shape[1] * height / image.shape[0]))
-        tiles.append(cv2.resize(image, (width, height), interpolation=cv2.INTER_AREA))
-    return np.concatenate(tiles, axis=1) if tiles else np.zeros((height, height, 3), np.uint8)
-
-
-def _stack(rows: list[np.ndarray]) -> np.ndarray:
-    width = max(r.shape[1] for r in rows)
-    return np.concatenate([np.pad(r, ((0, 0), (0, width - r.shape[1]), (0, 0))) for r in rows], axis=0)
-
-
-def _label(image: np.ndarray, text: str) -> np.ndarray:
-    image = np.ascontiguousarray(image)
-    cv2.putText(image, text, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 0), 1, cv2.LINE_AA)
-    return image
-
-
 def marker_preview(capture: Capture, run: CalibrationRun, cfg) -> np.ndarray:
     """Studio views with detected marker corners (green) and the fitted layout reprojected (red)."""
     rows = []
@@ -260,10 +244,10 @@ def marker_preview(capture: Capture, run: CalibrationRun, cfg) -> np.ndarray:
                         cv2.circle(image, tuple(np.round(uv).astype(int)), 3, (0, 255, 0), 1)
                     for uv in project_points(T, o.corners_hmd, cam):
                         cv2.drawMarker(image, tuple(np.round(uv).astype(int)), (255, 0, 0), cv2.MARKER_CROSS, 5, 1)
-                tiles.append(_label(image, f"{seq_name} {name} f{f}"))
+                tiles.append((f"{seq_name} {name} f{f}", image))
         if tiles:
-            rows.append(_tile_row(tiles))
-    return _stack(rows) if rows else np.zeros((64, 64, 3), np.uint8)
+            rows.append(tile_row(tiles, height=PREVIEW_TILE_HEIGHT))
+    return stack_rows(rows) if rows else np.zeros((64, 64, 3), np.uint8)
 
 
 def board_preview(capture: Capture, run: CalibrationRun, cfg) -> np.ndarray:
@@ -297,9 +281,9 @@ def board_preview(capture: Capture, run: CalibrationRun, cfg) -> np.ndarray:
                         if np.all(np.abs(uv) < 1e4):
                             cv2.drawMarker(image, tuple(np.round((uv + 0.5) * scale - 0.5).astype(int)), (255, 0, 0),
                                            cv2.MARKER_CROSS, 7, 1)
-            tiles.append(_label(image, f"{role} f{f}" + ("" if role in he.T_cam_from_hmd else " (uncalibrated)")))
-        rows.append(_tile_row(tiles))
-    return _stack(rows) if rows else np.zeros((64, 64, 3), np.uint8)
+            tiles.append((f"{role} f{f}" + ("" if role in he.T_cam_from_hmd else " (uncalibrated)"), image))
+        rows.append(tile_row(tiles, height=PREVIEW_TILE_HEIGHT))
+    return stack_rows(rows) if rows else np.zeros((64, 64, 3), np.uint8)
 
 
 def trajectory_preview(run: CalibrationRun) -> np.ndarray:

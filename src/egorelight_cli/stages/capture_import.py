@@ -98,7 +98,7 @@ def preview(capture: Capture) -> np.ndarray:
     """(H,W,3) uint8 contact sheet: per sequence, its first ego frame of each role and its first
     studio frame (tone-mapped) of up to three subject cameras (EXR or PNG)."""
     from egorelight_cli.stages.calibrate_head import studio_image
-    from egorelight_cli.synth.preview import contact_sheet
+    from egorelight_cli.render.sheets import contact_sheet
 
     rows = []
     for name in capture.sequence_names():
@@ -110,7 +110,7 @@ def preview(capture: Capture) -> np.ndarray:
             if sequence.studio_image_path(camera, int(sequence.frame_ids[0])).suffix in (".exr", ".png"):
                 tiles.append((f"{name} {camera}", studio_image(sequence, camera, int(sequence.frame_ids[0]), 99.0)[0]))
         rows.append(tiles)
-    return contact_sheet(f"imported capture: {len(rows)} sequences", rows)
+    return contact_sheet(rows, title=f"imported capture: {len(rows)} sequences", tile_height=160)
 
 
 def place(source: Path, target: Path, link: bool) -> bool:

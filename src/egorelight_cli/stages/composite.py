@@ -225,22 +225,3 @@ def scaled_camera(camera: Camera, scale: float) -> Camera:
     K[1, 2] = (camera.K[1, 2] + 0.5) * scale - 0.5
     width, height = max(int(round(camera.width * scale)), 1), max(int(round(camera.height * scale)), 1)
     return Camera(camera.model, K, camera.dist, width, height, camera.T_cam_from_world, camera.name)
-
-
-def contact_sheet(rows: list[tuple[str, list[np.ndarray]]], tile_width: int) -> np.ndarray:
-    """(h,w,3) uint8: one labelled row of tiles per ``(label, images)`` (each image resized to
-    ``tile_width`` across)."""
-    import cv2
-
-    lines = []
-    width = max(len(images) for _, images in rows) * tile_width
-    for label, images in rows:
-        tiles = []
-        for image in images:
-            h = max(int(round(image.shape[0] * tile_width / image.shape[1])), 1)
-            tiles.append(cv2.resize(np.ascontiguousarray(image[..., :3]), (tile_width, h), interpolation=cv2.INTER_AREA))
-        line = np.concatenate(tiles, axis=1)
-        line = np.pad(line, ((0, 0), (0, width - line.shape[1]), (0, 0)))
-        cv2.putText(line, label, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 0), 1, cv2.LINE_AA)
-        lines.append(line)
-    return np.concatenate(lines, axis=0)

@@ -324,16 +324,16 @@ def inverse_preview(model, wild, inverse) -> np.ndarray:
 def preview(result, truth: np.ndarray | None, width: int) -> np.ndarray:
     """(h,w,3) uint8: rows panorama (unobserved texels dark red), E_h, and the truth when given."""
     from egorelight_cli.io.images import tonemap
+    from egorelight_cli.render.sheets import label as label_image
 
     height = max(width // 2, 1)
 
-    def row(envmap: np.ndarray, label: str, mask: np.ndarray | None = None) -> np.ndarray:
+    def row(envmap: np.ndarray, text: str, mask: np.ndarray | None = None) -> np.ndarray:
         image = tonemap(envmap, mask)
         if mask is not None:
             image = np.where(mask[..., None], image, np.array([90, 0, 0], np.uint8))
-        image = cv2.resize(np.ascontiguousarray(image), (width, height), interpolation=cv2.INTER_NEAREST)
-        cv2.putText(image, label, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 0), 1, cv2.LINE_AA)
-        return image
+        return label_image(cv2.resize(np.ascontiguousarray(image), (width, height), interpolation=cv2.INTER_NEAREST),
+                           text)
 
     rows = [row(result.panorama.radiance, "panorama E_o (observed)", result.panorama.coverage),
             row(result.envmap, "E_h (inpainted, colour model)")]

@@ -75,7 +75,7 @@ from egorelight_cli.geometry.markers import detect_board, detect_hmd_markers
 from egorelight_cli.geometry.raycast import RayCaster
 from egorelight_cli.geometry.skeleton import keypoint_positions
 from egorelight_cli.io.exr import write_exr_layers
-from egorelight_cli.io.images import write_image
+from egorelight_cli.io.images import tonemap, write_image
 from egorelight_cli.io.keypoints import write_keypoints_npz
 from egorelight_cli.io.meshes import write_ply
 from egorelight_cli.io.npz import write_npz
@@ -84,6 +84,7 @@ from egorelight_cli.render.envmaps import detailed_surroundings, envmap_set, wri
 from egorelight_cli.render.lighting import light_intensities
 from egorelight_cli.render.lightstage import LightStage
 from egorelight_cli.render.raster import rasterize_uv
+from egorelight_cli.render.sheets import contact_sheet
 from egorelight_cli.structures.character import Character
 from egorelight_cli.synth import derived, groundtruth
 from egorelight_cli.synth.appearance import make_appearance
@@ -96,7 +97,6 @@ from egorelight_cli.synth.hmd import (
     Hmd,
     make_hmd,
 )
-from egorelight_cli.synth.preview import contact_sheet, tonemap
 from egorelight_cli.synth.scan import scan_subject
 from egorelight_cli.synth.rig import (
     TRACKING_ROLE,
@@ -127,6 +127,8 @@ from egorelight_cli.synth.tracker import simulate_tracker
 from egorelight_cli.synth.uv_truth import UV_TRUTH, UVTruth
 
 SEQ = "sequences"
+#: Height in pixels of a tile in a sequence's preview sheet.
+PREVIEW_TILE_HEIGHT = 160
 
 
 def frame_name(frame_id: int, suffix: str) -> str:
@@ -455,7 +457,8 @@ def _write_sequence_files(writer, rig: Rig, plan: SequencePlan, keypoints, bodie
 def _write_preview(writer, rig: Rig, plan: SequencePlan, rows: list) -> None:
     names = sorted({e["envmap"] for e in plan.lights if e.get("envmap")})
     env_row = [(name, tonemap(rig.envmaps[name])) for name in names[:6]]
-    image = contact_sheet(f"{plan.name}: {plan.num_frames} frames at {plan.fps:g} fps", rows + [env_row])
+    image = contact_sheet(rows + [env_row], title=f"{plan.name}: {plan.num_frames} frames at {plan.fps:g} fps",
+                          tile_height=PREVIEW_TILE_HEIGHT)
     write_image(writer.path(f"previews/{plan.name}.png"), image)
 
 
