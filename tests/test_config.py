@@ -54,16 +54,17 @@ def test_unknown_key_lists_valid_keys(stages):
 
 
 @pytest.mark.parametrize("item,expected", [
-    ("iterations=1.5", "takes a int"),
-    ("iterations=true", "takes a int"),
+    ("iterations=1.5", "takes an int"),
+    ("iterations=true", "takes an int"),
     ("verbose=3", "takes a bool"),
     ("sizes=7", "takes a list"),
-    ("sizes=[1, x]", "takes a int"),
+    ("sizes=[1, x]", "takes an int"),
     ("step=abc", "takes a float"),
 ])
 def test_type_errors(stages, item, expected):
-    with pytest.raises(EgorelightError, match=expected):
+    with pytest.raises(EgorelightError, match=expected) as info:
         resolve_config("demo", "cpu", [item])
+    assert "in --set (the type of its default in stages/demo.yaml)" in str(info.value)
 
 
 def test_string_key_keeps_text(stages):

@@ -51,8 +51,27 @@ def test_errors(tmp_path):
     with pytest.raises(EgorelightError, match="not found"):
         read_image(tmp_path / "nope.png")
     (tmp_path / "bad.png").write_bytes(b"garbage")
-    with pytest.raises(EgorelightError, match="cannot decode"):
+    with pytest.raises(EgorelightError, match="cannot read image"):
         read_image(tmp_path / "bad.png")
     (tmp_path / "bad.dng").write_bytes(b"garbage")
     with pytest.raises(EgorelightError, match="cannot decode RAW"):
         read_image_linear(tmp_path / "bad.dng")
+
+
+def test_a_corrupt_png_is_said_once_in_the_error(tmp_path):
+    """libpng prints its complaint on file descriptor 2 itself: it goes into the one-line error
+    instead of before it (a process of its own: pytest's capture bypasses the fds)."""
+    import subprocess
+    import sys
+
+    write_image(tmp_path / "ok.png", np.random.default_rng(0).integers(0, 255, (64, 64, 3)).astype(np.uint8))
+    data = bytearray((tmp_path / "ok.png").read_bytes())
+    data[200] ^= 0x10  # inside the image data: a CRC error
+    (tmp_path / "flipped.png").write_bytes(bytes(data))
+    script = ("import sys\nfrom egorelight_cli.io.images import read_image\nfrom egorelight_cli.errors import EgorelightError\n"
+              "try:\n    read_image(sys.argv[1])\nexcept EgorelightError as exc:\n    print('error:', exc)\n")
+    result = subprocess.run([sys.executable, "-c", script, str(tmp_path / "flipped.png")], capture_output=True, text=True)
+    assert result.returncode == 0 and result.stderr == "", result.stderr
+    assert result.stdout.startswith("error: cannot read image (") and "CRC" in result.stdout and "flipped.png" in result.stdout
+    good = subprocess.run([sys.executable, "-c", script, str(tmp_path / "ok.png")], capture_output=True, text=True)
+    assert good.returncode == 0 and good.stdout == good.stderr == ""

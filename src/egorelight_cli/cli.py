@@ -23,7 +23,7 @@ from egorelight_cli.declarations import COMMANDS
 from egorelight_cli.errors import EgorelightError
 from egorelight_cli.stage_spec import Command, Input, Option, Output
 from egorelight_cli.runtime import DEVICES, parse_threads
-from egorelight_cli.signals import Terminated, terminate_as_exception
+from egorelight_cli.signals import Interrupted, Terminated, terminate_as_exception
 
 
 @dataclass
@@ -87,7 +87,18 @@ def common_options(func):
     return func
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+class _Group(click.Group):
+    """The root group: Ctrl-C inside a command leaves it as :class:`~egorelight_cli.signals.Interrupted`
+    (click would print an empty line and turn it into ``Abort``)."""
+
+    def invoke(self, ctx: click.Context):
+        try:
+            return super().invoke(ctx)
+        except KeyboardInterrupt as exc:
+            raise Interrupted() from exc
+
+
+@click.group(cls=_Group, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(__version__, prog_name="egorelight")
 @common_options
 def cli() -> None:
@@ -280,7 +291,7 @@ def main(argv: list[str] | None = None) -> None:
         if console.verbosity() > 0:
             traceback.print_exc()
         code = 2
-    except KeyboardInterrupt:
+    except (KeyboardInterrupt, Interrupted):
         click.echo("egorelight: interrupted", err=True)
         code = 130
     except Terminated:

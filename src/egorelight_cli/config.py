@@ -277,17 +277,25 @@ def coerce(key: str, new: Any, old: Any, raw: str | None = None) -> Any:
                 return [coerce(f"{key}[{i}]", v, old[0]) for i, v in enumerate(new)]
             return new
     shown = raw if raw is not None else repr(new)
-    raise EgorelightError(f"config key {key!r} takes a {_type_name(old)}, got {shown!r} ({_type_name(new)})")
+    kind = _type_name(old)
+    raise EgorelightError(f"config key {key!r} takes {'an' if kind[0] in 'aeiou' else 'a'} {kind}, got {shown!r} "
+                          f"({_type_name(new)})")
 
 
-def _assign(tree: dict[str, Any], key: str, value: Any, valid: dict[str, Any], origin: str, raw: str | None = None) -> None:
+def _assign(tree: dict[str, Any], key: str, value: Any, valid: dict[str, Any], origin: str, defaults: str,
+            raw: str | None = None) -> None:
+    """Set ``key`` of ``tree`` to ``value`` from ``origin``, in the type of its default in the
+    stage file ``defaults`` (both named in the error)."""
     if key not in valid:
         raise EgorelightError(f"unknown config key {key!r} in {origin}; valid keys: {', '.join(sorted(valid))}")
     parts = key.split(".")
     node = tree
     for part in parts[:-1]:
         node = node[part]
-    node[parts[-1]] = coerce(key, value, valid[key], raw)
+    try:
+        node[parts[-1]] = coerce(key, value, valid[key], raw)
+    except EgorelightError as exc:
+        raise EgorelightError(f"{exc.message} in {origin} (the type of its default in {defaults})") from None
 
 
 def parse_set(item: str) -> tuple[str, Any, str]:
@@ -321,13 +329,14 @@ def resolve_config(
     tree = copy.deepcopy(doc["defaults"])
     tree.setdefault("seed", 0)
     valid = flatten(tree)
+    defaults = f"stages/{stage}.yaml"
     origin = f"preset {preset} of {stage_config_path(stage).name}"
     for key, value in flatten(doc["presets"][preset] or {}).items():
-        _assign(tree, key, value, valid, origin)
+        _assign(tree, key, value, valid, origin, defaults)
     for item in overrides:
         key, value, raw = parse_set(item)
-        _assign(tree, key, value, valid, "--set", raw)
+        _assign(tree, key, value, valid, "--set", defaults, raw)
     if seed is not None:
         tree["seed"] = int(seed)
-    check_config(flatten(tree), doc["checks"], f"stages/{stage}.yaml")
+    check_config(flatten(tree), doc["checks"], defaults)
     return Config(tree, stage=stage, version=int(doc["version"]), preset=preset)

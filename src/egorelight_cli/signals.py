@@ -2,8 +2,8 @@
 
 Both unwind the stack as an exception, so every ``with ArtifactWriter`` block discards its
 temporary work and the CLI ends with one line: SIGINT raises ``KeyboardInterrupt`` (Python's
-default), SIGTERM raises :class:`Terminated` once :func:`terminate_as_exception` is in place (the
-CLI's ``main`` does it). The few renames that swap a finished artifact into place run under
+default; it leaves a command as :class:`Interrupted`), SIGTERM raises :class:`Terminated` once
+:func:`terminate_as_exception` is in place (the CLI's ``main`` does it). The few renames that swap a finished artifact into place run under
 :func:`signals_deferred`, so neither signal can stop them half-way; only SIGKILL or a power cut
 can, and the next writer of that output repairs what they leave
 (:func:`~egorelight_cli.atomic_output.remove_stale_temporaries`).
@@ -23,6 +23,11 @@ INTERRUPTS = (signal.SIGINT, signal.SIGTERM)
 class Terminated(BaseException):
     """The process received SIGTERM (a BaseException, like KeyboardInterrupt: ``except Exception``
     clauses let it pass)."""
+
+
+class Interrupted(BaseException):
+    """Ctrl-C inside a command: the ``KeyboardInterrupt`` renamed on its way out of the command, so
+    that click passes it on instead of printing an empty line and raising its ``Abort``."""
 
 
 def _raise_terminated(signum, frame) -> None:

@@ -10,13 +10,6 @@ non-contiguous array silently wrong.
 
 from __future__ import annotations
 
-import functools
-import os
-import sys
-import tempfile
-import threading
-from collections.abc import Iterator
-from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -24,6 +17,7 @@ import numpy as np
 import OpenEXR
 
 from egorelight_cli.errors import EgorelightError
+from egorelight_cli.io.native_output import read_quietly
 
 #: Channel suffixes used when a (H,W,C) array is stored as a layer.
 LAYER_SUFFIXES = {1: ("Y",), 3: ("R", "G", "B"), 4: ("R", "G", "B", "A")}
@@ -141,79 +135,6 @@ def write_exr_layers(
     write_exr(path, channels, attributes, half)
 
 
-#: the process's file descriptors 1 and 2 are redirected by one reader at a time
-_REDIRECT_LOCK = threading.Lock()
-
-
-@contextmanager
-def _native_output_captured() -> Iterator[dict[int, list[str]]]:
-    """Collect what native code (the OpenEXR library and its binding) prints on file descriptors 1
-    and 2 inside the block, ``{1: lines, 2: lines}``, instead of the user's terminal: a corrupt file
-    is then said once, in the one-line error. One block at a time in the process (a lock)."""
-    with _REDIRECT_LOCK:
-        with _redirected() as captured:
-            yield captured
-
-
-@contextmanager
-def _redirected() -> Iterator[dict[int, list[str]]]:
-    captured: dict[int, list[str]] = {1: [], 2: []}
-    streams = {1: sys.stdout, 2: sys.stderr}
-    _flush_c_streams()
-    for stream in streams.values():
-        stream.flush()
-    saved = {fd: os.dup(fd) for fd in streams}
-    sinks = {fd: tempfile.TemporaryFile(mode="w+b") for fd in streams}
-    try:
-        for fd, sink in sinks.items():
-            os.dup2(sink.fileno(), fd)
-        yield captured
-    finally:
-        _flush_c_streams()  # what the library buffered (C stdio, which C++ iostreams write through)
-        for fd, stream in streams.items():
-            stream.flush()
-            os.dup2(saved[fd], fd)
-            os.close(saved[fd])
-            sinks[fd].seek(0)
-            text = sinks[fd].read().decode(errors="replace")
-            sinks[fd].close()
-            captured[fd] += [line for line in text.splitlines() if line.strip()]
-
-
-@functools.lru_cache(maxsize=1)
-def _libc():
-    """The process's C library (ctypes), None where it cannot be found."""
-    import ctypes
-
-    try:
-        return ctypes.CDLL(None)
-    except OSError:
-        return None
-
-
-def _flush_c_streams() -> None:
-    """``fflush(NULL)``: every C stdio stream of the process (a no-op where libc is not found)."""
-    libc = _libc()
-    if libc is not None and hasattr(libc, "fflush"):
-        libc.fflush(None)
-
-
-def _read_quietly(path: Path, read, what: str):
-    """``read()`` with native output captured: on failure a one-line EgorelightError naming
-    ``path`` with the library's first complaint on stderr; on success what it printed (warnings)
-    is printed as it was."""
-    try:
-        with _native_output_captured() as captured:
-            result = read()
-    except Exception as exc:
-        said = captured[2][0].split(": ", 1)[-1] if captured[2] else str(exc)
-        raise EgorelightError(f"cannot read {what} ({said})", path) from None
-    for fd, stream in ((1, sys.stdout), (2, sys.stderr)):
-        for line in captured[fd]:
-            print(line, file=stream)
-    return result
-
-
 def read_exr(path: str | Path) -> ExrImage:
     """Read every channel of an EXR file (kept in its stored dtype) and its user attributes."""
     path = Path(path)
@@ -225,7 +146,7 @@ def read_exr(path: str | Path) -> ExrImage:
             header = dict(exr.header())  # the binding empties its dict on close
             return header, {name: np.ascontiguousarray(ch.pixels) for name, ch in exr.channels().items()}
 
-    header, channels = _read_quietly(path, read, "EXR")
+    header, channels = read_quietly(path, read, "EXR")
     attributes = {k: v for k, v in header.items() if k not in _RESERVED_HEADER}
     for name, array in channels.items():
         if array.ndim != 2:
@@ -243,4 +164,4 @@ def read_exr_header(path: str | Path) -> dict:
         with OpenEXR.File(str(path), header_only=True) as exr:
             return dict(exr.header())
 
-    return _read_quietly(path, read, "EXR header")
+    return read_quietly(path, read, "EXR header")

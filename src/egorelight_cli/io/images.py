@@ -12,6 +12,7 @@ import cv2
 import numpy as np
 
 from egorelight_cli.errors import EgorelightError
+from egorelight_cli.io.native_output import read_quietly
 
 RAW_SUFFIXES = (".dng", ".cr2", ".cr3", ".nef", ".arw", ".raf", ".orf", ".rw2")
 
@@ -39,12 +40,24 @@ def tonemap(hdr: np.ndarray, mask: np.ndarray | None = None, percentile: float =
 
 def read_image(path: str | Path) -> np.ndarray:
     """Read a PNG/JPEG as stored: uint8 or uint16, (H,W) grey or (H,W,3|4) RGB(A)."""
+    return decode_image(path, cv2.IMREAD_UNCHANGED, "image")
+
+
+def decode_image(path: str | Path, flags: int, what: str) -> np.ndarray:
+    """``cv2.imread(path, flags)`` in RGB(A) channel order; a missing or undecodable file is a
+    one-line error naming ``what`` and ``path``, with libpng's or libjpeg's own complaint in it
+    instead of on the terminal before it (:func:`~egorelight_cli.io.native_output.read_quietly`)."""
     path = Path(path)
     if not path.is_file():
-        raise EgorelightError("image not found", path)
-    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if image is None:
-        raise EgorelightError("cannot decode image", path)
+        raise EgorelightError(f"{what} not found", path)
+
+    def decode() -> np.ndarray:
+        decoded = cv2.imread(str(path), flags)
+        if decoded is None:
+            raise ValueError("not a decodable file")
+        return decoded
+
+    image = read_quietly(path, decode, what)
     if image.ndim == 3 and image.shape[2] == 3:
         image = cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
     elif image.ndim == 3 and image.shape[2] == 4:

@@ -410,10 +410,9 @@ def load_envmap(path: str | Path, height: int | None = None) -> np.ndarray:
         except EgorelightError as error:
             raise EgorelightError(error.message, path) from None
     elif suffix == ".hdr":
-        image = cv2.imread(str(path), cv2.IMREAD_ANYDEPTH | cv2.IMREAD_COLOR)
-        if image is None:
-            raise EgorelightError("cannot decode Radiance HDR image", path)
-        image = cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+        from egorelight_cli.io.images import decode_image
+
+        image = decode_image(path, cv2.IMREAD_ANYDEPTH | cv2.IMREAD_COLOR, "Radiance HDR image")
     else:
         raise EgorelightError(f"unsupported environment map format {suffix!r} (use .exr or .hdr)", path)
     image = np.asarray(image, dtype=np.float32)
