@@ -32,6 +32,7 @@ from egorelight_cli.io.capture import Capture, frame_file, open_capture
 from egorelight_cli.io.mesh_sequence import load_meshes
 from egorelight_cli.structures.mesh_sequence import MeshSequence
 from egorelight_cli.nn.geolift_net import GeoLiftNet
+from egorelight_cli.nn.training import checkpoint_beside
 from egorelight_cli.pipeline import StageRun
 from egorelight_cli.sharding import FrameRange
 from egorelight_cli.render.raster import rasterize_uv
@@ -128,7 +129,7 @@ class GeoliftCommands:
             inputs += [meshes_artifact] if meshes_artifact is not None else []
             sources += [] if meshes_artifact else [meshes_path]
         self.run.compute_device()  # CPU stage: --device cuda is refused, not silently ignored
-        checkpoint = Path(out).parent / f".{Path(out).name}.checkpoint.pt"
+        checkpoint = checkpoint_beside(out)
 
         def write(writer: ArtifactWriter, cfg: Config) -> None:
             from egorelight_cli.io.model import ModelPayload, write_model

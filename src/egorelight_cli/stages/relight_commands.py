@@ -33,7 +33,7 @@ from egorelight_cli.io.capture import Capture, frame_file, open_capture
 from egorelight_cli.io.exr import read_exr, write_exr_layers
 from egorelight_cli.io.images import read_image, write_image
 from egorelight_cli.nn.distributed import rank_share
-from egorelight_cli.nn.training import train
+from egorelight_cli.nn.training import checkpoint_beside, train
 from egorelight_cli.render.image_metrics import tonemap_for_metrics
 from egorelight_cli.pipeline import StageRun
 from egorelight_cli.render.lighting import CaptureEnvmaps, light_intensities
@@ -397,7 +397,7 @@ class RelightCommands:
                                   f"pixels) in the {len(train_frames)} training frame(s)", capture_path)
         val_views = [(int(f), c) for f in val_frames for c in cameras]
         self.run.compute_device()
-        checkpoint = Path(out).parent / f".{Path(out).name}.checkpoint.pt"
+        checkpoint = checkpoint_beside(out)
 
         def write(writer: ArtifactWriter, cfg: Config) -> None:
             from egorelight_cli.io.model import ModelPayload, write_model
