@@ -233,3 +233,12 @@ def test_a_virtual_camera_json_that_cannot_render_is_an_error_naming_it(tmp_path
         with pytest.raises(EgorelightError, match=says) as info:
             read_camera_json(tmp_path / f"{name}.json")
         assert f"{name}.json" in str(info.value)
+
+
+def test_k_and_dist_batches_broadcast_or_are_an_error():
+    from egorelight_cli.geometry.cameras import _prepare
+
+    _, K, dist = _prepare(torch.zeros(5, 3), torch.eye(3).expand(2, 1, 3, 3), torch.zeros(3, 4), "fisheye")
+    assert K.shape == (2, 3, 3, 3) and dist.shape == (2, 3, 4)
+    with pytest.raises(EgorelightError, match="batch shapes differ"):
+        _prepare(torch.zeros(5, 3), torch.eye(3).expand(2, 3, 3), torch.zeros(3, 4), "fisheye")

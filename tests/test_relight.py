@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from egorelight_cli.io.exr import read_exr
-from tiny_models import cli_exit_code as _main, tiny_geolift_uvmaps  # the CLI in-process, shared setup
+from tiny_models import assert_resumes_to_the_same_model, cli_exit_code as _main, tiny_geolift_uvmaps  # the CLI in-process, shared setup
 
 
 @pytest.fixture(scope="module")
@@ -37,6 +37,19 @@ def test_a_tiny_relight_training_lowers_its_loss(relight_model):
     for key in ("val_psnr", "val_ssim", "val_lambert_psnr", "val_baked_psnr", "val_diffuse_only_psnr"):
         assert np.isfinite(metrics[key]), key
     assert metrics["val_lpips"] is None and "VGG" in metrics["id_mrf"]
+
+
+def test_train_relight_resumes_an_interrupted_run_to_the_same_model(tiny_capture, skinned_meshes, relight_inputs,
+                                                                   tmp_path, monkeypatch):
+    """Issue 18 ("resumable only on request"): Ctrl-C in step 5 of 6 (checkpoints every 2 steps),
+    then --resume, gives the weights of one uninterrupted run (one view per step: one loss call)."""
+    from egorelight_cli.stages import relight as rl
+
+    args = ["--preset", "tiny", "-q", "--set", "train.steps=6", "--set", "train.checkpoint_every=2", "train", "relight",
+            "--capture", tiny_capture, "--meshes", skinned_meshes / "relight_train.npz", "--uvmaps",
+            relight_inputs / "uvmaps_relight_train"]
+    assert_resumes_to_the_same_model(args, tmp_path / "resumed", tmp_path / "whole", monkeypatch, rl, "relight_loss",
+                                     fail_at_call=5)
 
 
 @pytest.mark.parametrize("albedo", ["gain", "texture"])

@@ -47,3 +47,35 @@ def assert_shards_merge_into(whole: Path, parts: list[Path], merged: Path) -> di
     assert manifest(merged)["cache_key"] == manifest(whole)["cache_key"]
     assert "shard" not in manifest(merged) and len(manifest(merged)["parts"]) == len(parts)
     return manifest(merged)
+
+
+def assert_resumes_to_the_same_model(args: list, out: Path, whole: Path, monkeypatch, module, function: str,
+                                     fail_at_call: int) -> None:
+    """``egorelight ARGS --out OUT`` interrupted (Ctrl-C) inside the ``fail_at_call``-th call of
+    ``module.function``, then run again with ``--resume``, ends with the weights of the uninterrupted
+    ``egorelight ARGS --out WHOLE``; the interrupted run leaves no output but its checkpoint, and the
+    resumed run removes the checkpoint. ``ARGS`` ends with the command (``train <stage> ...``)."""
+    import torch
+
+    from egorelight_cli.io.model import read_model
+    from egorelight_cli.nn.training import checkpoint_beside
+
+    assert cli_exit_code(*args, "--out", whole) == 0
+    original, calls = getattr(module, function), {"n": 0}
+
+    def failing(*a, **k):
+        calls["n"] += 1
+        if calls["n"] == fail_at_call:
+            raise KeyboardInterrupt
+        return original(*a, **k)
+
+    monkeypatch.setattr(module, function, failing)
+    assert cli_exit_code(*args, "--out", out) == 130
+    monkeypatch.setattr(module, function, original)
+    assert not out.exists() and checkpoint_beside(out).is_file()
+    assert cli_exit_code(*args, "--resume", "--out", out) == 0
+    assert not checkpoint_beside(out).exists()
+    expected, resumed = read_model(whole).state_dict, read_model(out).state_dict
+    assert expected.keys() == resumed.keys()
+    for key, value in expected.items():
+        torch.testing.assert_close(resumed[key], value, msg=key)

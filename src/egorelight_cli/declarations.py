@@ -210,7 +210,8 @@ STAGE_COMMANDS = (
                           "student); repeatable.", ("meshes",), (".npz",), required=True, multiple=True),
                     character("Character artifact, .npz, .character or 'default'.")),
             options=(Option("--seq", "sequences", "The sequence of each --meshes, in the same order (default: "
-                            "train.sequence).", aliases=("--sequence",), multiple=True),)),
+                            "train.sequence).", aliases=("--sequence",), multiple=True),
+                     resume())),
     Command(("geolift",), "geolift",
             "Tracked meshes -> per-frame UV normal map, flat-lit texture and lighting features (uvmaps).",
             "egorelight_cli.stages.geolift_commands:geolift_command",
@@ -229,7 +230,8 @@ STAGE_COMMANDS = (
                           ("meshes",), (".npz",), required=True),
                     Input("--uvmaps", "uvmaps", "geolift uvmaps of the same meshes, with the sequence's lighting "
                           "features.", ("uvmaps",), required=True),
-                    character("Character artifact, .npz, .character or 'default'."))),
+                    character("Character artifact, .npz, .character or 'default'.")),
+            options=(resume(),)),
     Command(("relight",), "relight",
             "Render the relightable avatar under a sequence's lighting (or another) and score it against the captured "
             "images.",

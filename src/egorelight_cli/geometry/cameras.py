@@ -257,8 +257,8 @@ def _prepare(first, K, dist, model: str):
         raise EgorelightError("distortion coefficients must be a vector (n,) or (...,n)")
     dist_t = _pad_dist(dist_t, model)
     try:
-        batch = torch.broadcast_shapes(K_t.shape[:-2], dist_t.shape[:-1])
-    except RuntimeError as error:
+        batch = np.broadcast_shapes(tuple(K_t.shape[:-2]), tuple(dist_t.shape[:-1]))  # not torch's: see make_transform
+    except ValueError as error:
         raise EgorelightError(f"K {tuple(K_t.shape)} and dist {tuple(dist_t.shape)} batch shapes differ") from error
     return first_t, K_t.expand(*batch, 3, 3), dist_t.expand(*batch, dist_t.shape[-1])
 

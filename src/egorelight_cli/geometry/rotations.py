@@ -244,7 +244,8 @@ def make_transform(R: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
     Returns:
         (...,4,4).
     """
-    batch = torch.broadcast_shapes(R.shape[:-2], t.shape[:-1])
+    # np.broadcast_shapes, not torch's: its first call imports torch.fx and sympy (~0.35 s a process)
+    batch = tuple(np.broadcast_shapes(tuple(R.shape[:-2]), tuple(t.shape[:-1])))
     top = torch.cat([R.expand(batch + (3, 3)), t.expand(batch + (3,))[..., None]], -1)
     bottom = torch.zeros(batch + (1, 4), dtype=top.dtype, device=top.device)
     bottom[..., 0, 3] = 1.0

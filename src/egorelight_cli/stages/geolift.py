@@ -61,13 +61,15 @@ class TrainSettings:
     weights: dict
     log_every: int
     seed: int
+    checkpoint_every: int = 200
 
     @classmethod
     def from_config(cls, cfg: Config) -> "TrainSettings":
         t = cfg.train
         weights = {k: float(t.weights[k]) for k in LOSSES}
         # value ranges: the checks of stages/geolift.yaml
-        return cls(int(t.steps), float(t.lr), int(t.views_per_step), weights, int(t.log_every), int(cfg.seed))
+        return cls(int(t.steps), float(t.lr), int(t.views_per_step), weights, int(t.log_every), int(cfg.seed),
+                   int(t.checkpoint_every))
 
 
 # --------------------------------------------------------------------------------------------
@@ -279,7 +281,8 @@ def train_geolift(views: list[TrainView], coarse: CoarseMaps, starts: np.ndarray
         loss = sum(settings.weights[name] * value for name, value in totals.items())
         return {"loss": loss, **totals}
 
-    curve = train(model, optimizer, step, settings.steps, checkpoint=checkpoint, log_every=settings.log_every,
+    curve = train(model, optimizer, step, settings.steps, checkpoint=checkpoint,
+                  checkpoint_every=settings.checkpoint_every, log_every=settings.log_every,
                   desc="train geolift")
     return model, curve
 

@@ -32,7 +32,7 @@ from egorelight_cli.io.capture import Capture, frame_file, open_capture
 from egorelight_cli.io.mesh_sequence import load_meshes
 from egorelight_cli.structures.mesh_sequence import MeshSequence
 from egorelight_cli.nn.geolift_net import GeoLiftNet
-from egorelight_cli.nn.training import checkpoint_beside
+from egorelight_cli.nn.training import Checkpoint, checkpoint_beside
 from egorelight_cli.pipeline import StageRun
 from egorelight_cli.sharding import FrameRange
 from egorelight_cli.render.raster import rasterize_uv
@@ -99,7 +99,7 @@ class GeoliftCommands:
 
     # ------------------------------------------------------------------------------- train
     def train(self, capture_path: Path, meshes_paths: list[Path], character_spec: str, out: Path,
-              sequences: list[str] | None = None) -> Path:
+              sequences: list[str] | None = None, resume: bool = False) -> Path:
         """Train on the flat-lit frames of one or more sequences, each with its tracked meshes
         (``meshes_paths[i]`` belongs to ``sequences[i]``; one meshes artifact defaults to
         ``train.sequence``). The last ``validation_fraction`` of each sequence's frames is held out."""
@@ -153,7 +153,8 @@ class GeoliftCommands:
                          f"{len(val_views)} held-out views")
             started = time.perf_counter()
             model, curve = gl.train_geolift(train_views, coarse, np.concatenate(starts),
-                                            gl.TrainSettings.from_config(cfg), cfg.net, texture, checkpoint)
+                                            gl.TrainSettings.from_config(cfg), cfg.net, texture,
+                                            Checkpoint(checkpoint, writer.cache_key, resume))
             writer.timing["train_s"] = round(time.perf_counter() - started, 3)
             writer.metrics.update(gl.fit_report(model, train_views, coarse, texture))
             validation = gl.fit_report(model, val_views, coarse, texture)
@@ -213,8 +214,8 @@ def map_path(frame_id: int) -> str:
 
 # ------------------------------------------------------------- handlers (egorelight_cli.declarations)
 def train_command(run: StageRun, capture: Path, meshes: tuple[Path, ...], character: str,
-                  sequences: tuple[str, ...], out: Path) -> Path:
-    return GeoliftCommands(run).train(capture, list(meshes), character, out, list(sequences) or None)
+                  sequences: tuple[str, ...], resume: bool, out: Path) -> Path:
+    return GeoliftCommands(run).train(capture, list(meshes), character, out, list(sequences) or None, resume)
 
 
 def geolift_command(run: StageRun, meshes: Path, model: Path, character: str, capture: Path | None, sequence: str,

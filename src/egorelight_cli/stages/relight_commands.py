@@ -33,7 +33,7 @@ from egorelight_cli.io.capture import Capture, frame_file, open_capture
 from egorelight_cli.io.exr import read_exr, write_exr_layers
 from egorelight_cli.io.images import read_image, write_image
 from egorelight_cli.nn.distributed import rank_share
-from egorelight_cli.nn.training import checkpoint_beside, train
+from egorelight_cli.nn.training import Checkpoint, checkpoint_beside, train
 from egorelight_cli.render.image_metrics import tonemap_for_metrics
 from egorelight_cli.pipeline import StageRun
 from egorelight_cli.render.lighting import CaptureEnvmaps, light_intensities
@@ -375,7 +375,8 @@ class RelightCommands:
         sources = character_sources(character_spec, character_artifact) + ([] if meshes_artifact else [meshes_path])
         return data, frames, inputs, sources
 
-    def train(self, capture_path: Path, meshes_path: Path, uvmaps_path: Path, character_spec: str, out: Path) -> Path:
+    def train(self, capture_path: Path, meshes_path: Path, uvmaps_path: Path, character_spec: str, out: Path,
+              resume: bool = False) -> Path:
         cfg = self.run.config()
         net = {k: cfg.net[k] for k in ("uv_resolution", "attention_level", "rays")}
         data, frames, inputs, sources = self._load(capture_path, meshes_path, uvmaps_path, character_spec,
@@ -434,8 +435,8 @@ class RelightCommands:
                 return {name: torch.stack([loss[name] for loss in losses]).mean() for name in losses[0]}
 
             started = time.perf_counter()
-            curve = train(model, optimizer, step, steps, checkpoint=checkpoint, log_every=int(t.log_every),
-                          desc="train relight")
+            curve = train(model, optimizer, step, steps, checkpoint=Checkpoint(checkpoint, writer.cache_key, resume),
+                          checkpoint_every=int(t.checkpoint_every), log_every=int(t.log_every), desc="train relight")
             writer.timing["train_s"] = round(time.perf_counter() - started, 3)
             model.eval()
             validation, previews = evaluate(model, data, val_views, None, int(cfg.preview.frames))
@@ -520,8 +521,9 @@ class RelightCommands:
 
 
 # ------------------------------------------------------------- handlers (egorelight_cli.declarations)
-def train_command(run: StageRun, capture: Path, meshes: Path, uvmaps: Path, character: str, out: Path) -> Path:
-    return RelightCommands(run).train(capture, meshes, uvmaps, character, out)
+def train_command(run: StageRun, capture: Path, meshes: Path, uvmaps: Path, character: str, resume: bool,
+                  out: Path) -> Path:
+    return RelightCommands(run).train(capture, meshes, uvmaps, character, out, resume)
 
 
 def relight_command(run: StageRun, capture: Path, meshes: Path, uvmaps: Path, model: Path, character: str,
