@@ -75,3 +75,26 @@ def test_a_corrupt_png_is_said_once_in_the_error(tmp_path):
     assert result.stdout.startswith("error: cannot read image (") and "CRC" in result.stdout and "flipped.png" in result.stdout
     good = subprocess.run([sys.executable, "-c", script, str(tmp_path / "ok.png")], capture_output=True, text=True)
     assert good.returncode == 0 and good.stdout == good.stderr == ""
+
+
+def test_an_image_is_read_where_native_output_cannot_be_captured(tmp_path, monkeypatch):
+    """No room for the capture files, or a process started with stdout closed: the image is read
+    as it is, not an error about the capture (it was UnboundLocalError)."""
+    import os
+    import subprocess
+    import sys
+    import tempfile
+
+    image = np.arange(48, dtype=np.uint8).reshape(4, 4, 3)
+    write_image(tmp_path / "a.png", image)
+
+    def no_room(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    with monkeypatch.context() as patch:
+        patch.setattr(tempfile, "TemporaryFile", no_room)
+        np.testing.assert_array_equal(read_image(tmp_path / "a.png"), image)
+    script = "import sys\nfrom egorelight_cli.io.images import read_image\nprint(read_image(sys.argv[1]).shape, file=sys.stderr)\n"
+    result = subprocess.run([sys.executable, "-c", script, str(tmp_path / "a.png")], capture_output=True, text=True,
+                            preexec_fn=lambda: os.close(1))
+    assert result.returncode == 0 and result.stderr.strip() == "(4, 4, 3)", result.stderr

@@ -181,7 +181,7 @@ def test_train_commands_take_resume():
 
     from egorelight_cli.cli import cli
 
-    for stage in ("egodepth", "animate", "egopose"):
+    for stage in ("egodepth", "animate", "egopose", "geolift", "relight"):
         result = CliRunner().invoke(cli, ["train", stage, "--help"])
         assert result.exit_code == 0 and "--resume" in result.output, stage
 

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from egorelight_cli.render.sheets import MAX_WIDTH, contact_sheet, fit_tile, label, stack_rows, tile_row
+from egorelight_cli.render.sheets import MAX_WIDTH, contact_sheet, fit_tile, label, labelled_rows, stack_rows, tile_row
 
 
 def test_fit_tile_keeps_the_aspect_and_makes_rgb():
@@ -42,3 +42,14 @@ def test_contact_sheet_has_a_title_bar_and_a_row_per_non_empty_entry():
     wide = contact_sheet([[("w", np.zeros((10, 10 * MAX_WIDTH, 3), np.uint8))]], tile_height=10)
     assert wide.shape == (10, MAX_WIDTH, 3)
     assert contact_sheet([[]], title="nothing", tile_height=16).shape[0] == 22 + 16
+
+
+def test_labelled_rows_write_the_label_across_the_row():
+    tiles = [np.zeros((20, 20, 3), np.uint8)] * 3
+    long_label = "a label longer than one tile"
+    sheet = labelled_rows([(long_label, tiles), ("b", tiles[:1])], tile_width=20)
+    assert sheet.shape == (40, 60, 3)
+    assert sheet[:20, 20:].max() > 0  # the text goes on past the first tile
+    assert stack_rows([np.zeros((1, 2, 3), np.uint8), np.zeros((1, 5, 3), np.uint8)], fill=255)[0, 2:].min() == 255
+    with pytest.raises(ValueError, match="uint8"):
+        label(np.zeros((4, 4, 3), np.float32), "x")

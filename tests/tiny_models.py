@@ -50,30 +50,35 @@ def assert_shards_merge_into(whole: Path, parts: list[Path], merged: Path) -> di
 
 
 def assert_resumes_to_the_same_model(args: list, out: Path, whole: Path, monkeypatch, module, function: str,
-                                     fail_at_call: int) -> None:
+                                     fail_at_call: int, resumed_from_call: int) -> None:
     """``egorelight ARGS --out OUT`` interrupted (Ctrl-C) inside the ``fail_at_call``-th call of
     ``module.function``, then run again with ``--resume``, ends with the weights of the uninterrupted
-    ``egorelight ARGS --out WHOLE``; the interrupted run leaves no output but its checkpoint, and the
-    resumed run removes the checkpoint. ``ARGS`` ends with the command (``train <stage> ...``)."""
+    ``egorelight ARGS --out WHOLE`` and skips the calls its checkpoint holds (the first
+    ``resumed_from_call``: a run that started over would redo them, with the same weights, training
+    being seeded); the interrupted run leaves no output but its checkpoint, and the resumed run
+    removes the checkpoint. ``ARGS`` ends with the command (``train <stage> ...``)."""
     import torch
 
     from egorelight_cli.io.model import read_model
     from egorelight_cli.nn.training import checkpoint_beside
 
-    assert cli_exit_code(*args, "--out", whole) == 0
-    original, calls = getattr(module, function), {"n": 0}
+    original, calls = getattr(module, function), {"n": 0, "fail_at": None}
 
-    def failing(*a, **k):
+    def counted(*a, **k):
         calls["n"] += 1
-        if calls["n"] == fail_at_call:
+        if calls["n"] == calls["fail_at"]:
             raise KeyboardInterrupt
         return original(*a, **k)
 
-    monkeypatch.setattr(module, function, failing)
+    monkeypatch.setattr(module, function, counted)
+    assert cli_exit_code(*args, "--out", whole) == 0
+    whole_calls = calls["n"]
+    calls.update(n=0, fail_at=fail_at_call)
     assert cli_exit_code(*args, "--out", out) == 130
-    monkeypatch.setattr(module, function, original)
     assert not out.exists() and checkpoint_beside(out).is_file()
+    calls.update(n=0, fail_at=None)
     assert cli_exit_code(*args, "--resume", "--out", out) == 0
+    assert calls["n"] == whole_calls - resumed_from_call, (calls["n"], whole_calls)
     assert not checkpoint_beside(out).exists()
     expected, resumed = read_model(whole).state_dict, read_model(out).state_dict
     assert expected.keys() == resumed.keys()

@@ -155,16 +155,17 @@ def write_preview(writer, rows: dict[int, np.ndarray], frame_range: FrameRange, 
     order; a shard's: each row as ``preview_tiles/<position>.png`` for :func:`merge_parts`."""
     if frame_range.whole:
         if rows:
-            write_image(writer.path(name), stack_rows([rows[p] for p in sorted(rows)]))
+            write_image(writer.path(name), stack_preview_rows([rows[p] for p in sorted(rows)]))
         return
     for position, image in rows.items():
         write_image(writer.path(f"{PREVIEW_TILES}/{position:06d}.png"), image)
 
 
-def stack_rows(rows: list[np.ndarray]) -> np.ndarray:
-    """Preview rows stacked vertically, narrower rows padded with white on the right."""
-    width = max(r.shape[1] for r in rows)
-    return np.concatenate([np.pad(r, ((0, 0), (0, width - r.shape[1]), (0, 0)), constant_values=255) for r in rows])
+def stack_preview_rows(rows: list[np.ndarray]) -> np.ndarray:
+    """Preview rows (one per frame) stacked vertically, narrower rows padded with white on the right."""
+    from egorelight_cli.render.sheets import stack_rows
+
+    return stack_rows(rows, max_width=None, fill=255)
 
 
 # ------------------------------------------------------------------------------------- merge
@@ -269,7 +270,7 @@ def merge_parts(paths, out, force: bool = False, preview_name: str = "preview.pn
         writer.extra["parts"] = [{"path": str(p.path), "digest": p.digest, "shard": p.manifest["shard"]} for p in parts]
         tiles = sorted(name for name in files if name.startswith(f"{PREVIEW_TILES}/"))
         if tiles:
-            write_image(writer.path(preview_name), stack_rows([read_image(files[name][0]) for name in tiles]))
+            write_image(writer.path(preview_name), stack_preview_rows([read_image(files[name][0]) for name in tiles]))
         for name, copies in files.items():
             if name in tiles:
                 continue

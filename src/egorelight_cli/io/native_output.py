@@ -12,7 +12,7 @@ import threading
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import TypeVar
+from typing import IO, TypeVar
 
 from egorelight_cli.errors import EgorelightError
 
@@ -37,24 +37,53 @@ def _redirected() -> Iterator[dict[int, list[str]]]:
     captured: dict[int, list[str]] = {1: [], 2: []}
     streams = {1: sys.stdout, 2: sys.stderr}
     _flush_c_streams()
-    for stream in streams.values():
-        stream.flush()
-    saved = {fd: os.dup(fd) for fd in streams}
-    sinks = {fd: tempfile.TemporaryFile(mode="w+b") for fd in streams}
+    _flush(streams.values())
+    opened = _open_sinks(streams)
+    if opened is None:  # a closed stdout/stderr or no room for the sinks: native output goes where it went
+        yield captured
+        return
+    saved, sinks = opened
     try:
         for fd, sink in sinks.items():
             os.dup2(sink.fileno(), fd)
         yield captured
     finally:
         _flush_c_streams()  # what the library buffered (C stdio, which C++ iostreams write through)
-        for fd, stream in streams.items():
-            stream.flush()
+        _flush(streams.values())
+        for fd in streams:
             os.dup2(saved[fd], fd)
             os.close(saved[fd])
             sinks[fd].seek(0)
             text = sinks[fd].read().decode(errors="replace")
             sinks[fd].close()
             captured[fd] += [line for line in text.splitlines() if line.strip()]
+
+
+def _flush(streams) -> None:
+    """Flush Python's text streams (None where the process was started without one)."""
+    for stream in streams:
+        if stream is not None:
+            stream.flush()
+
+
+def _open_sinks(fds) -> tuple[dict[int, int], dict[int, IO[bytes]]] | None:
+    """Per file descriptor of ``fds`` a duplicate (to restore it) and an anonymous temporary file
+    (to catch what is written); None, with nothing left open, where either cannot be made."""
+    saved: dict[int, int] = {}
+    sinks: dict[int, IO[bytes]] = {}
+    try:
+        for fd in fds:  # a closed one: a file opened here would take its number
+            os.fstat(fd)
+        for fd in fds:
+            saved[fd] = os.dup(fd)
+            sinks[fd] = tempfile.TemporaryFile(mode="w+b")
+    except OSError:
+        for duplicate in saved.values():
+            os.close(duplicate)
+        for sink in sinks.values():
+            sink.close()
+        return None
+    return saved, sinks
 
 
 @functools.lru_cache(maxsize=1)
@@ -79,6 +108,7 @@ def read_quietly(path: Path, read: Callable[[], T], what: str) -> T:
     """``read()`` with native output captured: on failure a one-line EgorelightError naming
     ``path`` with the library's first complaint on stderr; on success what it printed (warnings)
     is printed as it was."""
+    captured: dict[int, list[str]] = {1: [], 2: []}
     try:
         with native_output_captured() as captured:
             result = read()
@@ -86,6 +116,6 @@ def read_quietly(path: Path, read: Callable[[], T], what: str) -> T:
         said = captured[2][0].split(": ", 1)[-1] if captured[2] else str(exc)
         raise EgorelightError(f"cannot read {what} ({said})", path) from None
     for fd, stream in ((1, sys.stdout), (2, sys.stderr)):
-        for line in captured[fd]:
+        for line in captured[fd] if stream is not None else ():
             print(line, file=stream)
     return result

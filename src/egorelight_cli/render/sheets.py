@@ -15,8 +15,10 @@ MAX_WIDTH = 4096
 
 
 def label(image: np.ndarray, text: str, colour: tuple[int, int, int] = LABEL_COLOUR) -> np.ndarray:
-    """(H,W,3) uint8 copy of ``image`` with ``text`` written at its top left."""
-    image = np.array(image, np.uint8, order="C", copy=True)
+    """(H,W,3) uint8 copy of ``image`` (uint8) with ``text`` written at its top left."""
+    if np.asarray(image).dtype != np.uint8:
+        raise ValueError(f"contact-sheet tiles are uint8 images, got {np.asarray(image).dtype}")
+    image = np.array(image, order="C", copy=True)
     if text:
         cv2.putText(image, text, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.45, colour, 1, cv2.LINE_AA)
     return image
@@ -50,11 +52,20 @@ def tile_row(tiles: Sequence[tuple[str, np.ndarray]], height: int | None = None,
     return np.concatenate([np.pad(p, ((0, tallest - p.shape[0]), (0, 0), (0, 0))) for p in parts], axis=1)
 
 
-def stack_rows(rows: Sequence[np.ndarray], max_width: int = MAX_WIDTH) -> np.ndarray:
-    """(H,W,3) uint8: ``rows`` one under another, right-padded to the widest (at most ``max_width``)."""
-    width = min(max(r.shape[1] for r in rows), max_width)
-    return np.concatenate([np.pad(r[:, :width], ((0, 0), (0, width - min(r.shape[1], width)), (0, 0)))
-                           for r in rows], axis=0)
+def stack_rows(rows: Sequence[np.ndarray], max_width: int | None = MAX_WIDTH, fill: int = 0) -> np.ndarray:
+    """(H,W,3) uint8: ``rows`` one under another, narrower ones padded on the right with ``fill``,
+    wider ones cropped to ``max_width`` (None: never)."""
+    width = max(r.shape[1] for r in rows)
+    width = width if max_width is None else min(width, max_width)
+    return np.concatenate([np.pad(r[:, :width], ((0, 0), (0, width - min(r.shape[1], width)), (0, 0)),
+                                  constant_values=fill) for r in rows], axis=0)
+
+
+def labelled_rows(rows: Sequence[tuple[str, Sequence[np.ndarray]]], tile_width: int) -> np.ndarray:
+    """(H,W,3) uint8: per ``(text, images)`` a row of the images fitted to ``tile_width`` with
+    ``text`` written across the row (not clipped to its first tile)."""
+    return stack_rows([label(tile_row([("", image) for image in images], width=tile_width), text)
+                       for text, images in rows])
 
 
 def contact_sheet(rows: Sequence[Sequence[tuple[str, np.ndarray]]], title: str | None = None,

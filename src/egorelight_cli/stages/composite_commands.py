@@ -181,13 +181,13 @@ class CompositeCommands:
                 sheet += evaluation.sheet_rows
                 writer.timing["eval_s"] = round(evaluation.seconds, 3)
             from egorelight_cli.io.images import write_image
-            from egorelight_cli.render.sheets import contact_sheet
+            from egorelight_cli.render.sheets import labelled_rows
 
             shown = np.unique(np.round(np.linspace(0, len(views) - 1, min(settings.sheet_columns, len(views))))
                               .astype(int))
-            write_image(writer.path(PREVIEW_PNG),
-                        contact_sheet([[(label if k == 0 else "", images[i]) for k, i in enumerate(shown)]
-                                       for label, images in sheet], tile_width=settings.sheet_tile_width))
+            write_image(writer.path(PREVIEW_PNG), labelled_rows([(label, [images[i] for i in shown])
+                                                                 for label, images in sheet],
+                                                                settings.sheet_tile_width))
             writer.save_json(PLACEMENT_JSON, {
                 **placement.to_json(), "place": {"forward_m": forward_m, "right_m": right_m, "yaw_deg": yaw_deg},
                 "eye_height_m": eye, "camera": views[0].camera.to_dict() if virtual is not None else front,

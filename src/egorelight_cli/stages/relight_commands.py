@@ -43,7 +43,7 @@ from egorelight_cli.render.uv_features import TexelLighting, lighting_feature_ma
 from egorelight_cli.stages import relight as rl
 from egorelight_cli.stages.geolift_commands import (load_character_meshes, map_path, split_held_out,
                                                     training_cameras)
-from egorelight_cli.sharding import FrameRange, stack_rows, write_preview
+from egorelight_cli.sharding import FrameRange, stack_preview_rows, write_preview
 from egorelight_cli.stages.relight_eval import (HEAD_PARTS, PARTS_PASS, SCORED_PATTERNS, SCORES_NPZ, RelightScores,
                                                 HEADSET_NOT_EXCLUDED, HeadsetExclusion, display_images, part_channels,
                                                 part_groups, score_view)
@@ -442,7 +442,7 @@ class RelightCommands:
             validation, previews = evaluate(model, data, val_views, None, int(cfg.preview.frames))
             writer.metrics.update({f"val_{k}": v for k, v in scored_metrics(validation, data).items()})
             if previews:
-                write_image(writer.path(PREVIEW_PNG), stack_rows([previews[i] for i in sorted(previews)]))
+                write_image(writer.path(PREVIEW_PNG), stack_preview_rows([previews[i] for i in sorted(previews)]))
             extra = {"uv_resolution": int(net.uv_resolution), "sequence": data.sequence.name, "cameras": cameras,
                      "train_frames": train_frames.tolist(), "val_frames": val_frames.tolist()}
             write_model(writer.workdir, ModelPayload(rl.MODEL_STAGE, model.architecture(), model.state_dict(), extra,
