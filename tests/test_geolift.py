@@ -189,14 +189,14 @@ def test_the_baseline_maps_in_the_networks_place_score_as_the_baselines(tiny_cap
 
 def test_train_geolift_resumes_an_interrupted_run_to_the_same_model(tiny_capture, skinned_meshes, tmp_path,
                                                                    monkeypatch):
-    """Ctrl-C in step 5 of 6 (checkpoints every 2 steps; two views per step: two loss calls), then
+    """Ctrl-C in step 3 of 4 (checkpoints every 2 steps; two views per step: two loss calls), then
     --resume, gives the weights of one uninterrupted run."""
     from tiny_models import assert_resumes_to_the_same_model
 
-    args = ["--preset", "tiny", "-q", "--set", "train.steps=6", "--set", "train.checkpoint_every=2", "train", "geolift",
+    args = ["--preset", "tiny", "-q", "--set", "train.steps=4", "--set", "train.checkpoint_every=2", "train", "geolift",
             "--capture", tiny_capture, "--meshes", skinned_meshes / "relight_train.npz"]
     assert_resumes_to_the_same_model(args, tmp_path / "resumed", tmp_path / "whole", monkeypatch, gl, "view_losses",
-                                     fail_at_call=9, resumed_from_call=8)
+                                     fail_at_call=5, resumed_from_call=4)
 
 
 def test_train_geolift_pairs_meshes_with_sequences(tiny_capture, skinned_meshes, tmp_path, run):

@@ -41,15 +41,15 @@ def test_a_tiny_relight_training_lowers_its_loss(relight_model):
 
 def test_train_relight_resumes_an_interrupted_run_to_the_same_model(tiny_capture, skinned_meshes, relight_inputs,
                                                                    tmp_path, monkeypatch):
-    """Issue 18 ("resumable only on request"): Ctrl-C in step 5 of 6 (checkpoints every 2 steps),
+    """Issue 18 ("resumable only on request"): Ctrl-C in step 3 of 4 (checkpoints every 2 steps),
     then --resume, gives the weights of one uninterrupted run (one view per step: one loss call)."""
     from egorelight_cli.stages import relight as rl
 
-    args = ["--preset", "tiny", "-q", "--set", "train.steps=6", "--set", "train.checkpoint_every=2", "train", "relight",
+    args = ["--preset", "tiny", "-q", "--set", "train.steps=4", "--set", "train.checkpoint_every=2", "train", "relight",
             "--capture", tiny_capture, "--meshes", skinned_meshes / "relight_train.npz", "--uvmaps",
             relight_inputs / "uvmaps_relight_train"]
     assert_resumes_to_the_same_model(args, tmp_path / "resumed", tmp_path / "whole", monkeypatch, rl, "relight_loss",
-                                     fail_at_call=5, resumed_from_call=4)
+                                     fail_at_call=3, resumed_from_call=2)
 
 
 @pytest.mark.parametrize("albedo", ["gain", "texture"])

