@@ -84,6 +84,22 @@ def skinned_meshes(tiny_capture, tmp_path_factory) -> Path:
     return out
 
 
+
+@pytest.fixture(scope="session")
+def tiny_avatar(tiny_capture, skinned_meshes, tmp_path_factory) -> Path:
+    """The appearance stages' shared tiny avatar, in one folder: a geolift model (``geolift``),
+    uvmaps with lighting features of relight_train, wild, ego_train and test (``uvmaps_<seq>``)
+    and a relight model trained 4 steps on relight_train (``relight``). Read-only; a module may add
+    an output of its own under a name nobody else uses (composite's ``envmap``)."""
+    from tiny_models import cli_exit_code, tiny_geolift_uvmaps
+
+    root = tmp_path_factory.mktemp("avatar")
+    tiny_geolift_uvmaps(root, tiny_capture, skinned_meshes, ("relight_train", "wild", "ego_train", "test"))
+    assert cli_exit_code("--preset", "tiny", "-q", "--set", "train.steps=4", "train", "relight", "--capture",
+                         tiny_capture, "--meshes", skinned_meshes / "relight_train.npz", "--uvmaps",
+                         root / "uvmaps_relight_train", "--out", root / "relight") == 0
+    return root
+
 @pytest.fixture(scope="session")
 def oracle_calibration(tiny_capture):
     """The tiny capture's calibration taken from its ground truth (for stages downstream of calibrate)."""

@@ -13,7 +13,7 @@ from egorelight_cli.errors import EgorelightError
 from egorelight_cli.nn.colour_inverse import CameraMapping, camera_mapping, diagonal_inverse, invert_colour
 from egorelight_cli.nn.colour_model import RootPolynomialColour
 from egorelight_cli.stages import composite as cp
-from tiny_models import cli_exit_code as _main, tiny_geolift_uvmaps  # the CLI in-process, shared setup
+from tiny_models import cli_exit_code as _main  # the CLI in-process
 
 
 def _model() -> RootPolynomialColour:
@@ -208,14 +208,10 @@ def test_auto_eye_height_takes_the_studio_head_poses_only():
 
 
 @pytest.fixture(scope="module")
-def avatar(tiny_capture, skinned_meshes, oracle_calibration_artifact, tmp_path_factory):
+def avatar(tiny_capture, skinned_meshes, oracle_calibration_artifact, tiny_avatar):
     """A tiny geolift model, uvmaps of test / wild / ego_train / relight_train, a (briefly) trained
     relight model and the wild envmap fitted by inverse rendering."""
-    root = tmp_path_factory.mktemp("composite")
-    tiny_geolift_uvmaps(root, tiny_capture, skinned_meshes, ("relight_train", "wild", "ego_train", "test"))
-    assert _main("--preset", "tiny", "-q", "--set", "train.steps=4", "train", "relight", "--capture", tiny_capture,
-                 "--meshes", skinned_meshes / "relight_train.npz", "--uvmaps", root / "uvmaps_relight_train",
-                 "--out", root / "relight") == 0
+    root = tiny_avatar  # the session's (conftest.tiny_avatar); the envmap below is this module's own
     assert _main("envmap", "--preset", "tiny", "-q", "--capture", tiny_capture, "--calibration",
                  oracle_calibration_artifact, "--meshes", skinned_meshes / "wild.npz", "--uvmaps", root / "uvmaps_wild",
                  "--model", root / "relight", "--sync-meshes", skinned_meshes / "ego_train.npz", "--sync-uvmaps",

@@ -17,7 +17,7 @@ from egorelight_cli.render.lighting import EnvmapPooling
 from egorelight_cli.render.lightstage import LightStage
 from egorelight_cli.stages.envmap_inverse import (EgoView, InverseSettings, fit_colour_model, observe, part_l1,
                                                  range_regulariser, sync_matrix)
-from tiny_models import cli_exit_code as _main, tiny_geolift_uvmaps  # the CLI in-process, shared setup
+from tiny_models import cli_exit_code as _main  # the CLI in-process
 
 
 def test_inverse_rendering_recovers_a_known_colour_model():
@@ -144,14 +144,10 @@ def test_dis_flow_warps_a_shifted_image_back_and_flags_occlusions():
 
 
 @pytest.fixture(scope="module")
-def avatar(tiny_capture, skinned_meshes, tmp_path_factory):
-    """A tiny geolift model, uvmaps of wild / ego_train / relight_train and a (briefly) trained relight model."""
-    root = tmp_path_factory.mktemp("envmap_inverse")
-    tiny_geolift_uvmaps(root, tiny_capture, skinned_meshes, ("relight_train", "wild", "ego_train"))
-    assert _main("--preset", "tiny", "-q", "--set", "train.steps=4", "train", "relight", "--capture", tiny_capture,
-                 "--meshes", skinned_meshes / "relight_train.npz", "--uvmaps", root / "uvmaps_relight_train",
-                 "--out", root / "relight") == 0
-    return root
+def avatar(tiny_avatar):
+    """A tiny geolift model, uvmaps of wild / ego_train / relight_train and a (briefly) trained relight
+    model: the session's (conftest.tiny_avatar)."""
+    return tiny_avatar
 
 
 def _inverse_args(tiny_capture, calibration, skinned_meshes, avatar):

@@ -9,20 +9,19 @@ import numpy as np
 import pytest
 
 from egorelight_cli.io.exr import read_exr
-from tiny_models import assert_resumes_to_the_same_model, cli_exit_code as _main, tiny_geolift_uvmaps  # the CLI in-process, shared setup
+from tiny_models import assert_resumes_to_the_same_model, cli_exit_code as _main  # the CLI in-process
 
 
 @pytest.fixture(scope="module")
-def relight_inputs(tiny_capture, skinned_meshes, tmp_path_factory):
-    """A tiny geolift model and uvmaps (with lighting features) of relight_train and test."""
-    root = tmp_path_factory.mktemp("relight")
-    tiny_geolift_uvmaps(root, tiny_capture, skinned_meshes, ("relight_train", "test"))
-    return root
+def relight_inputs(tiny_avatar):
+    """A tiny geolift model and uvmaps (with lighting features) of relight_train and test: the
+    session's (conftest.tiny_avatar; read-only)."""
+    return tiny_avatar
 
 
 @pytest.fixture(scope="module")
-def relight_model(tiny_capture, skinned_meshes, relight_inputs):
-    out = relight_inputs / "relight"
+def relight_model(tiny_capture, skinned_meshes, relight_inputs, tmp_path_factory):
+    out = tmp_path_factory.mktemp("relight") / "relight"
     assert _main("--preset", "tiny", "-q", "--set", "train.steps=40", "train", "relight", "--capture", tiny_capture,
                  "--meshes", skinned_meshes / "relight_train.npz", "--uvmaps",
                  relight_inputs / "uvmaps_relight_train", "--out", out) == 0
