@@ -475,6 +475,7 @@ def _write_preview(writer: ArtifactWriter, character: Character, meshes: MeshSeq
     import cv2
 
     from egorelight_cli.io.images import write_image
+    from egorelight_cli.render import sheets
     from egorelight_cli.stages.ik_commands import preview_frames
 
     preview = cfg["preview"]
@@ -485,16 +486,13 @@ def _write_preview(writer: ArtifactWriter, character: Character, meshes: MeshSeq
         d = None if distances is None else distances.get(fid)
         tile = _side_view(character, meshes.vertices[row], d, width, height)
         label = f"frame {fid}" + ("" if d is None else f" {d.mean():.2f} cm")
-        cv2.putText(tile, label, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
-        parts = [tile]
+        parts = [sheets.label(tile, label, colour=(0, 0, 0))]
         if capture is not None and calibration is not None:
             ego = _ego_overlay(capture, calibration, sequence, character, meshes.vertices[row], fid, height)
             if ego is not None:
                 parts.insert(0, ego)
         tiles.append(np.concatenate(parts, axis=1))
-    widest = max(t.shape[1] for t in tiles)
-    tiles = [np.pad(t, ((0, 0), (0, widest - t.shape[1]), (0, 0)), constant_values=255) for t in tiles]
-    image = np.concatenate(tiles, axis=0)
+    image = sheets.stack_rows(tiles, max_width=None, fill=255)
     if distances is not None:
         image = np.pad(image, ((0, 16), (0, 0), (0, 0)), constant_values=255)
         cv2.putText(image, "colour: distance to true mesh, blue 0 -> red 2 cm", (4, image.shape[0] - 5),

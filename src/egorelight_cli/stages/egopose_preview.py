@@ -9,6 +9,7 @@ import numpy as np
 from egorelight_cli.geometry.cameras import project
 from egorelight_cli.io.capture import Capture
 from egorelight_cli.nn.egopose_net import RigGeometry
+from egorelight_cli.render import sheets
 from egorelight_cli.stages.egopose import DOWN_ROLES, EgoFrames, Prediction
 from egorelight_cli.structures.keypoints import Keypoints, keypoint_edges
 
@@ -55,8 +56,6 @@ def preview_image(capture: Capture, frames: EgoFrames, rig: RigGeometry, predict
                 cam = (np.einsum("ij,kj->ki", T_cam_from_hmd[v] @ T_hmd_from_world, np.c_[xyz, np.ones(len(xyz))]))[:, :3]
                 pixels = project(cam, rig.K[v].double().numpy(), rig.dist[v].double().numpy(), "fisheye")
                 _draw(image, np.asarray(pixels), colour, scale)
-            cv2.putText(image, f"{role} frame {int(frames.frame_ids[row])}", (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4,
-                        (255, 255, 0), 1, cv2.LINE_AA)
-            tiles.append(image)
+            tiles.append(sheets.label(image, f"{role} frame {int(frames.frame_ids[row])}"))
         out_rows.append(np.concatenate(tiles, axis=1))
     return out_rows
