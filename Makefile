@@ -40,8 +40,11 @@ $(STAMP): pyproject.toml
 
 venv: $(STAMP)
 
+# the suite on TEST_WORKERS pytest-xdist workers (auto: one per core the process may use; 0: in this
+# process), whole test modules per worker, each with its share of the cores (tests/conftest.py)
+TEST_WORKERS ?= auto
 test: $(STAMP)
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n $(TEST_WORKERS)
 
 bench: $(STAMP)
 	$(BIN)/python bench/run.py

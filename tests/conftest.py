@@ -11,17 +11,65 @@ from pathlib import Path
 
 import pytest
 
-from egorelight_cli.io.character import load_default_character
+# a pytest-xdist worker (make test: one per core) takes its share of the cores: every worker at
+# every core would make torch, BLAS and the CLI runs it starts fight over them (OMP_NUM_THREADS
+# is what --threads and the Makefile's nproc default to); a value the user set is kept
+# (before anything imports torch)
+if os.environ.get("PYTEST_XDIST_WORKER") and "OMP_NUM_THREADS" not in os.environ:
+    from egorelight_cli.runtime import available_cores
+
+    _workers = max(1, int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")))
+    os.environ["OMP_NUM_THREADS"] = str(max(1, available_cores()[0] // _workers))
 
 # this session's persistent digest cache (egorelight_cli.digest_cache), not the user's ~/.cache;
 # the CLI subprocesses inherit it; removed when the session ends
 os.environ["EGORELIGHT_CACHE_DIR"] = tempfile.mkdtemp(prefix="egorelight-digests-")
 atexit.register(shutil.rmtree, os.environ["EGORELIGHT_CACHE_DIR"], ignore_errors=True)
 
+from egorelight_cli.io.character import load_default_character
+
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"
 DDC_EXAMPLE = SHARED / "data" / "ddc_example"
 BVH_EXAMPLE = SHARED / "data" / "motion" / "cmu_131_01_start_walk_stop.bvh"
+
+
+#: the modules that share the session's ``tiny_avatar``: under pytest-xdist they run on one worker,
+#: which builds it once (a module using it must be listed: collection says so otherwise)
+TINY_AVATAR_MODULES = ("test_composite.py", "test_envmap_inverse.py", "test_relight.py")
+
+
+def pytest_xdist_auto_num_workers(config) -> int:
+    """``-n auto``: one worker per core this process may use (affinity, cgroup quota,
+    OMP_NUM_THREADS, Slurm: what ``--threads`` defaults to), not the host's core count."""
+    from egorelight_cli.runtime import available_cores
+
+    return available_cores()[0]
+
+
+def pytest_xdist_make_scheduler(config, log):
+    """``pytest -n N`` (``make test``) hands out whole modules (:mod:`module_scheduling`) unless
+    another ``--dist`` mode is asked for."""
+    if config.getvalue("dist") != "load":
+        return None
+    from module_scheduling import ModuleScheduling
+
+    return ModuleScheduling(config, log, {name: "tiny_avatar" for name in TINY_AVATAR_MODULES})
+
+
+def pytest_collection_modifyitems(config, items) -> None:
+    """Checks :data:`TINY_AVATAR_MODULES`; on a pytest-xdist worker, puts the modules holding a
+    ``slow`` test first, so that the longest work units are handed out first and do not end the
+    run alone (without xdist the order is unchanged)."""
+    by_module: dict[Path, list] = {}
+    for item in items:
+        by_module.setdefault(item.path, []).append(item)
+    for path, module_items in by_module.items():
+        if path.name not in TINY_AVATAR_MODULES and any("tiny_avatar" in i.fixturenames for i in module_items):
+            raise pytest.UsageError(f"{path.name} uses tiny_avatar: list it in conftest.TINY_AVATAR_MODULES")
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        slow_first = sorted(by_module, key=lambda p: not any(i.get_closest_marker("slow") for i in by_module[p]))
+        items[:] = [item for path in slow_first for item in by_module[path]]
 
 
 @pytest.fixture

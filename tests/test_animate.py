@@ -15,6 +15,8 @@ import pytest
 from egorelight_cli.io.motion import Motion, read_motion_npz, write_motion_npz
 
 
+pytestmark = pytest.mark.slow  # handed out first under pytest-xdist (conftest)
+
 def _metrics(artifact: Path) -> dict:
     return json.loads((artifact / "manifest.json").read_text())["metrics"]
 

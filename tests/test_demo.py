@@ -17,6 +17,8 @@ import pytest
 from egorelight_cli.artifacts import open_artifact
 from html_page import parse
 
+pytestmark = pytest.mark.slow  # handed out first under pytest-xdist (conftest)
+
 ROOT = Path(__file__).resolve().parents[1]
 
 #: what the chain must leave, by artifact directory and kind

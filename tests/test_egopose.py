@@ -19,6 +19,9 @@ from egorelight_cli.nn.egopose_net import (EgoPoseNet, RigGeometry, heading_fram
                                            transform, unproject_keypoints, windows)
 from egorelight_cli.structures.keypoints import NUM_KEYPOINTS
 
+pytestmark = pytest.mark.slow  # handed out first under pytest-xdist (conftest)
+
+
 def axis_angle_to_matrix(axis_angle: np.ndarray) -> np.ndarray:
     return cv2.Rodrigues(np.asarray(axis_angle, np.float64))[0]
 

@@ -11,6 +11,8 @@ import pytest
 from egorelight_cli.io.exr import read_exr
 from tiny_models import assert_resumes_to_the_same_model, cli_exit_code as _main  # the CLI in-process
 
+pytestmark = pytest.mark.slow  # handed out first under pytest-xdist (conftest)
+
 
 @pytest.fixture(scope="module")
 def relight_inputs(tiny_avatar):
