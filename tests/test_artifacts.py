@@ -151,6 +151,38 @@ def test_stage_run_skips_when_up_to_date_and_force_reruns(tmp_path, monkeypatch)
     assert is_up_to_date(out, key, "motion") and not is_up_to_date(out, key, "keypoints")
 
 
+def test_how_often_a_run_checkpoints_is_not_part_of_its_cache_key(tmp_path, monkeypatch):
+    """train.checkpoint_every changes what a run could resume from, never what it writes: another
+    value finds the output up to date (and a checkpoint resumable) and is recorded in the runtime;
+    a key beside it (log_every: the curve written) still re-runs."""
+    from egorelight_cli.pipeline import split_unkeyed
+
+    assert split_unkeyed({"a": 1, "train": {"checkpoint_every": 5, "log_every": 2, "t": {"checkpoint_every": 3}}}) == (
+        {"a": 1, "train": {"log_every": 2, "t": {}}}, {"train.checkpoint_every": 5, "train.t.checkpoint_every": 3})
+    (tmp_path / "stages").mkdir()
+    (tmp_path / "stages" / "toy.yaml").write_text(
+        "stage: toy\nversion: 1\ndefaults: {train: {checkpoint_every: 2, log_every: 1}}\n"
+        "presets: {tiny: {}, cpu: {}, paper: {}}\n")
+    monkeypatch.setattr(config_module, "stages_dir", lambda: tmp_path / "stages")
+    calls = []
+
+    def write(w, cfg):
+        calls.append(cfg.train.checkpoint_every)
+        w.save_npz("motion.npz", {"theta": np.zeros((2, 2), np.float32)})
+
+    out = tmp_path / "toy"
+    StageRun("toy").produce(out, "motion", write)
+    every_7 = StageRun("toy", sets=("train.checkpoint_every=7",))
+    assert every_7.cache_key()[0] == StageRun("toy").cache_key()[0] == open_artifact(out).manifest["cache_key"]
+    every_7.produce(out, "motion", write)
+    assert calls == [2]
+    manifest = open_artifact(out).manifest
+    assert "checkpoint_every" not in manifest["config"]["train"]
+    assert manifest["runtime"]["unkeyed_config"] == {"train.checkpoint_every": 2}
+    StageRun("toy", sets=("train.log_every=3",)).produce(out, "motion", write)
+    assert calls == [2, 2]
+
+
 def test_check_sequence_names_an_input_made_for_another_sequence(tmp_path):
     from egorelight_cli.artifacts import check_sequence
 

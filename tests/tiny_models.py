@@ -56,7 +56,10 @@ def assert_resumes_to_the_same_model(args: list, out: Path, whole: Path, monkeyp
     ``egorelight ARGS --out WHOLE`` and skips the calls its checkpoint holds (the first
     ``resumed_from_call``: a run that started over would redo them, with the same weights, training
     being seeded); the interrupted run leaves no output but its checkpoint, and the resumed run
-    removes the checkpoint. ``ARGS`` ends with the command (``train <stage> ...``)."""
+    removes the checkpoint. The resumed run checkpoints every step (how often is no part of the cache
+    key), and so does a run over WHOLE, which finds it up to date, as ``ARGS`` does once WHOLE's
+    manifest is rewritten as a model from before that (:func:`record_as_before_unkeyed`). ``ARGS``
+    ends with the command (``train <stage> ...``)."""
     import torch
 
     from egorelight_cli.io.model import read_model
@@ -77,10 +80,37 @@ def assert_resumes_to_the_same_model(args: list, out: Path, whole: Path, monkeyp
     assert cli_exit_code(*args, "--out", out) == 130
     assert not out.exists() and checkpoint_beside(out).is_file()
     calls.update(n=0, fail_at=None)
-    assert cli_exit_code(*args, "--resume", "--out", out) == 0
+    command = args.index("train")
+    every_step = [*args[:command], "--set", "train.checkpoint_every=1", *args[command:]]
+    assert cli_exit_code(*every_step, "--resume", "--out", out) == 0
     assert calls["n"] == whole_calls - resumed_from_call, (calls["n"], whole_calls)
     assert not checkpoint_beside(out).exists()
+    calls.update(n=0)
+    assert cli_exit_code(*every_step, "--out", whole) == 0 and calls["n"] == 0  # up to date
+    record_as_before_unkeyed(whole)  # a model from before: up to date under the value it recorded
+    assert cli_exit_code(*args, "--out", whole) == 0 and calls["n"] == 0
     expected, resumed = read_model(whole).state_dict, read_model(out).state_dict
     assert expected.keys() == resumed.keys()
     for key, value in expected.items():
         torch.testing.assert_close(resumed[key], value, msg=key)
+
+
+def record_as_before_unkeyed(out: Path) -> None:
+    """Rewrite the manifest of ``out`` as a run from before ``pipeline.UNKEYED_NAMES`` wrote it:
+    those keys in its config, and in its cache key."""
+    import json
+
+    from egorelight_cli.artifacts import cache_key, manifest_path_for
+
+    path, _ = manifest_path_for(out)
+    manifest = json.loads(path.read_text())
+    config = manifest["config"]
+    for dotted, value in manifest["runtime"].pop("unkeyed_config").items():
+        *parents, name = dotted.split(".")
+        node = config
+        for parent in parents:
+            node = node.setdefault(parent, {})
+        node[name] = value
+    digests = [entry["digest"] for entry in manifest.get("inputs", []) + manifest.get("sources", [])]
+    manifest["cache_key"] = cache_key(manifest["stage"], manifest["stage_version"], config, digests)
+    path.write_text(json.dumps(manifest, indent=2))

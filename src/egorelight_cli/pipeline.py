@@ -107,7 +107,8 @@ class StageRun:
         declared = declared.get("options", {})
         names = {o.name for o in command.options} | ({"frames", "shard"} if command.per_frame else set())
         if (manifest.get("stage") != self.stage or manifest.get("stage_version") != config.version
-                or recorded != config.to_dict()
+                # (a manifest from before UNKEYED_NAMES recorded the whole config, and holds with it)
+                or recorded not in (split_unkeyed(config.to_dict())[0], config.to_dict())
                 or {k: v for k, v in recorded_options.items() if k in names} != declared):
             return False
         recorded_inputs, recorded_sources = manifest.get("inputs", []), manifest.get("sources", [])
@@ -124,8 +125,8 @@ class StageRun:
                 or not command.read_in_given_order(self.values, [a.path for a in inputs])
                 or not command.read_in_given_order(self.values, sources)):
             return False
-        key = cache_key(self.stage, config.version, {**config.to_dict(), **({"options": recorded_options}
-                                                                             if recorded_options else {})},
+        key = cache_key(self.stage, config.version, {**recorded, **({"options": recorded_options}
+                                                                     if recorded_options else {})},
                         [a.digest for a in inputs] + [entry["digest"] for entry in recorded_sources])
         if key != manifest.get("cache_key") or artifact.payload_problems():
             return False
@@ -189,6 +190,9 @@ class StageRun:
         with ArtifactWriter(out, kind=kind, stage=self.stage, config=config, inputs=inputs, key=key,
                             keep=group is None or group.primary, input_params=params) as writer:
             writer.config = _keyed_config(config, self.options(options))
+            unkeyed = split_unkeyed(config.to_dict())[1]
+            if unkeyed:
+                writer.runtime["unkeyed_config"] = unkeyed
             if self.command is not None:
                 writer.runtime["command"] = self.command.name
             if sources:
@@ -233,10 +237,31 @@ def _leave_process_group() -> None:
     distributed.shutdown()
 
 
+#: config keys (by name, at any depth) that say how often a run saves what it could be resumed
+#: from, never what it writes: left out of the cache key and the manifest's ``config`` (recorded in
+#: its ``runtime``), so that changing one neither re-runs an up-to-date output nor refuses ``--resume``
+UNKEYED_NAMES = frozenset({"checkpoint_every"})
+
+
+def split_unkeyed(tree: Mapping[str, Any], prefix: str = "") -> tuple[dict, dict[str, Any]]:
+    """(``tree`` without its :data:`UNKEYED_NAMES` keys, ``{"dotted.key": value}`` of those)."""
+    keyed: dict[str, Any] = {}
+    unkeyed: dict[str, Any] = {}
+    for name, value in tree.items():
+        if isinstance(value, Mapping):
+            keyed[name], inner = split_unkeyed(value, f"{prefix}{name}.")
+            unkeyed.update(inner)
+        elif name in UNKEYED_NAMES:
+            unkeyed[f"{prefix}{name}"] = value
+        else:
+            keyed[name] = value
+    return keyed, unkeyed
+
+
 def _keyed_config(config: Config, options: Mapping[str, Any] | None) -> dict:
-    """The resolved config as the cache key and the manifest see it, with the command's options
-    (paths as strings) under ``options``."""
-    tree = config.to_dict()
+    """The resolved config as the cache key and the manifest see it (without its
+    :data:`UNKEYED_NAMES` keys), with the command's options (paths as strings) under ``options``."""
+    tree, _ = split_unkeyed(config.to_dict())
     if options:
         tree["options"] = {k: (str(v) if isinstance(v, Path) else v) for k, v in sorted(options.items())}
     return tree
