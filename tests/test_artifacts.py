@@ -153,8 +153,8 @@ def test_stage_run_skips_when_up_to_date_and_force_reruns(tmp_path, monkeypatch)
 
 def test_how_often_a_run_checkpoints_is_not_part_of_its_cache_key(tmp_path, monkeypatch):
     """train.checkpoint_every changes what a run could resume from, never what it writes: another
-    value finds the output up to date (and a checkpoint resumable) and is recorded in the runtime;
-    a key beside it (log_every: the curve written) still re-runs."""
+    value finds the output up to date and is recorded in the runtime; a key beside it (log_every:
+    the curve written) still re-runs. (Resuming under another value: tiny_models' resume check.)"""
     from egorelight_cli.pipeline import split_unkeyed
 
     assert split_unkeyed({"a": 1, "train": {"checkpoint_every": 5, "log_every": 2, "t": {"checkpoint_every": 3}}}) == (
