@@ -132,7 +132,6 @@ def skinned_meshes(tiny_capture, tmp_path_factory) -> Path:
     return out
 
 
-
 @pytest.fixture(scope="session")
 def tiny_avatar(tiny_capture, skinned_meshes, tmp_path_factory) -> Path:
     """The appearance stages' shared tiny avatar, in one folder: a geolift model (``geolift``),
@@ -147,6 +146,7 @@ def tiny_avatar(tiny_capture, skinned_meshes, tmp_path_factory) -> Path:
                          tiny_capture, "--meshes", skinned_meshes / "relight_train.npz", "--uvmaps",
                          root / "uvmaps_relight_train", "--out", root / "relight") == 0
     return root
+
 
 @pytest.fixture(scope="session")
 def oracle_calibration(tiny_capture):

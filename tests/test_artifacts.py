@@ -154,8 +154,10 @@ def test_stage_run_skips_when_up_to_date_and_force_reruns(tmp_path, monkeypatch)
 def test_how_often_a_run_checkpoints_is_not_part_of_its_cache_key(tmp_path, monkeypatch):
     """train.checkpoint_every changes what a run could resume from, never what it writes: another
     value finds the output up to date and is recorded in the runtime; a key beside it (log_every:
-    the curve written) still re-runs. (Resuming under another value: tiny_models' resume check.)"""
+    the curve written) still re-runs; an output recorded before (the value in its config and key)
+    stays up to date. (Resuming under another value: tiny_models' resume check.)"""
     from egorelight_cli.pipeline import split_unkeyed
+    from tiny_models import record_as_before_unkeyed
 
     assert split_unkeyed({"a": 1, "train": {"checkpoint_every": 5, "log_every": 2, "t": {"checkpoint_every": 3}}}) == (
         {"a": 1, "train": {"log_every": 2, "t": {}}}, {"train.checkpoint_every": 5, "train.t.checkpoint_every": 3})
@@ -179,6 +181,9 @@ def test_how_often_a_run_checkpoints_is_not_part_of_its_cache_key(tmp_path, monk
     manifest = open_artifact(out).manifest
     assert "checkpoint_every" not in manifest["config"]["train"]
     assert manifest["runtime"]["unkeyed_config"] == {"train.checkpoint_every": 2}
+    StageRun("toy", sets=("train.log_every=3",)).produce(out, "motion", write)
+    assert calls == [2, 2]
+    record_as_before_unkeyed(out)  # an output from before: up to date under the value it recorded
     StageRun("toy", sets=("train.log_every=3",)).produce(out, "motion", write)
     assert calls == [2, 2]
 

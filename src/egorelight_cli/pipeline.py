@@ -53,9 +53,10 @@ class StageRun:
         return resolve_device(self.device, stage=self.stage)
 
     def cache_key(self, inputs: Sequence[Artifact] = (), source_files: Sequence[str | Path] = (),
-                  options: Mapping[str, Any] | None = None) -> tuple[str, list[dict]]:
+                  options: Mapping[str, Any] | None = None, unkeyed: bool = False) -> tuple[str, list[dict]]:
         """(cache key, manifest ``sources`` entries): hash of the stage, its version, the resolved
-        config plus the command's output-affecting ``options``, and the digests of every input."""
+        config plus the command's output-affecting ``options``, and the digests of every input.
+        ``unkeyed``: the key as runs made it before :data:`UNKEYED_NAMES` left it (their config whole)."""
         config = self.config()
         sources = []
         for path in source_files:
@@ -64,7 +65,8 @@ class StageRun:
                 raise EgorelightError("input file not found", path)
             sources.append({"path": str(path), "digest": cached_sha256_file(path)})
         digests = [a.digest for a in inputs] + [s["digest"] for s in sources]
-        return cache_key(self.stage, config.version, _keyed_config(config, self.options(options)), digests), sources
+        return (cache_key(self.stage, config.version, _keyed_config(config, self.options(options), unkeyed), digests),
+                sources)
 
     def options(self, explicit: Mapping[str, Any] | None = None) -> dict[str, Any]:
         """The options that enter the cache key and ``config.options``: the declared command's keyed
@@ -103,12 +105,13 @@ class StageRun:
         manifest, config = artifact.manifest, self.config()
         recorded = dict(manifest.get("config") or {})
         recorded_options = recorded.pop("options", {}) or {}
+        whole = config.to_dict()
         declared = json.loads(json.dumps(_keyed_config(Config({}), command.keyed_options(self.values))))
         declared = declared.get("options", {})
         names = {o.name for o in command.options} | ({"frames", "shard"} if command.per_frame else set())
         if (manifest.get("stage") != self.stage or manifest.get("stage_version") != config.version
                 # (a manifest from before UNKEYED_NAMES recorded the whole config, and holds with it)
-                or recorded not in (split_unkeyed(config.to_dict())[0], config.to_dict())
+                or recorded not in (split_unkeyed(whole)[0], whole)
                 or {k: v for k, v in recorded_options.items() if k in names} != declared):
             return False
         recorded_inputs, recorded_sources = manifest.get("inputs", []), manifest.get("sources", [])
@@ -140,7 +143,9 @@ class StageRun:
         if self.force:
             return False
         key, _ = self.cache_key(inputs, source_files, options)
-        if not is_up_to_date(out, key, kind):
+        if not is_up_to_date(out, key, kind) and not (  # or made before UNKEYED_NAMES left the key
+                split_unkeyed(self.config().to_dict())[1]
+                and is_up_to_date(out, self.cache_key(inputs, source_files, options, unkeyed=True)[0], kind)):
             return False
         console.info(f"{out}: up to date, skipped (--force re-runs it)")
         return True
@@ -258,10 +263,11 @@ def split_unkeyed(tree: Mapping[str, Any], prefix: str = "") -> tuple[dict, dict
     return keyed, unkeyed
 
 
-def _keyed_config(config: Config, options: Mapping[str, Any] | None) -> dict:
+def _keyed_config(config: Config, options: Mapping[str, Any] | None, unkeyed: bool = False) -> dict:
     """The resolved config as the cache key and the manifest see it (without its
-    :data:`UNKEYED_NAMES` keys), with the command's options (paths as strings) under ``options``."""
-    tree, _ = split_unkeyed(config.to_dict())
+    :data:`UNKEYED_NAMES` keys, unless ``unkeyed``), with the command's options (paths as strings)
+    under ``options``."""
+    tree = config.to_dict() if unkeyed else split_unkeyed(config.to_dict())[0]
     if options:
         tree["options"] = {k: (str(v) if isinstance(v, Path) else v) for k, v in sorted(options.items())}
     return tree
