@@ -60,12 +60,12 @@ def test_ctrl_c_in_a_command_says_interrupted_in_one_line(tmp_path, monkeypatch,
     assert capsys.readouterr().err == "egorelight: interrupted\n"
 
 
-@pytest.mark.parametrize("signum,code,line", [(signal.SIGTERM, 143, "egorelight: terminated")])
+@pytest.mark.parametrize("signum,code,line", [(signal.SIGTERM, 143, "egorelight: terminated"),
+                                              (signal.SIGINT, 130, "egorelight: interrupted")])
 def test_a_stopped_stage_says_so_in_one_line_and_leaves_nothing(tmp_path, signum, code, line):
-    """SIGTERM (a scheduler's kill) mid-run of a stage with worker processes: one line on stderr, no
-    traceback, no temporary folder, no worker left running (before: exit -15, the work folder
-    left, and the workers went on writing into it). Ctrl-C takes the same path (checked by hand:
-    exit 130, "egorelight: interrupted", nothing left; in-process above)."""
+    """SIGTERM (a scheduler's kill) or SIGINT (Ctrl-C) mid-run of a stage with worker processes: one
+    line on stderr, no traceback, no temporary folder, no worker left running (before: exit -15,
+    the work folder left, and the workers went on writing into it)."""
     out = tmp_path / "capture"
     command = [str(ROOT / ".venv" / "bin" / "egorelight"), "--preset", "tiny", "--threads", "2", "synth",
                "--out", str(out)]
