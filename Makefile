@@ -166,18 +166,31 @@ $(SUBJECT)/motion_bootstrap/%/manifest.json: $(CAPTURE) $(CHARACTER) $(IK_BOOTST
 $(IK_MODEL): $(CHARACTER) $(addsuffix /manifest.json,$(IK_TRAIN_MOTIONS))
 	$(EGO) $(EGOFLAGS) train ik $(IK_TRAIN_MOTIONS) --character $(SUBJECT)/character --out $(SUBJECT)/models/ik
 
+# The head from the headset (issue 21, stages/ik_head.py): no keypoint sees the neck and head DoFs, so
+# IK leaves them at the mean pose; with HMD_FROM the neck and head of every frame with a head pose
+# follow the tracked HMD, its mounting on the head calibrated on motion_surface/HMD_REFERENCE_SEQ (the
+# mocap fitted to the reconstruction). On the cpu capture (issue 21's twenty-eighth session) the skinned
+# face of the headset's motion of `test` went 1.85 -> 0.67 cm from the truth, hair 2.78 -> 0.69, the
+# whole body 2.95 -> 2.62 (P2S, skinning alone). HMD_REFERENCE_SEQ= (empty) keeps the mean-pose head.
+HMD_REFERENCE_SEQ ?= ego_train
+HMD_REFERENCE := $(if $(HMD_REFERENCE_SEQ),$(SUBJECT)/motion_surface/$(HMD_REFERENCE_SEQ)/manifest.json)
+HMD_FROM = $(if $(HMD_REFERENCE_SEQ),--hmd-reference $(SUBJECT)/motion_surface/$(HMD_REFERENCE_SEQ) \
+	--calibration $(SUBJECT)/calibration --seq $(1))
+
 # motion/<seq>: from the headset alone (egopose keypoints)
-$(SUBJECT)/motion/%/manifest.json: $(SUBJECT)/keypoints/%/manifest.json $(CHARACTER) $(IK_MODEL)
+$(SUBJECT)/motion/%/manifest.json: $(SUBJECT)/keypoints/%/manifest.json $(CHARACTER) $(IK_MODEL) $(CALIBRATION) \
+		$(HMD_REFERENCE)
 	$(EGO) $(EGOFLAGS) ik --in $(SUBJECT)/keypoints/$* --character $(SUBJECT)/character \
-		--model $(SUBJECT)/models/ik $(call GT_POSED,$*) --out $(SUBJECT)/motion/$*
+		--model $(SUBJECT)/models/ik $(if $(HMD_REFERENCE_SEQ),$(call GT,$*) $(call HMD_FROM,$*),$(call GT_POSED,$*)) \
+		--out $(SUBJECT)/motion/$*
 
 # ik from a keypoints file: $(1) keypoints, $(2) sequence, $(3) output
 IK_FROM = $(EGO) $(EGOFLAGS) ik --in $(1) --character $(SUBJECT)/character --model $(SUBJECT)/models/ik \
 	$(call GT,$(2)) --out $(3)
 
 # motion_mocap/<seq>: from the studio's markerless mocap (one of the avatar's training motions)
-$(SUBJECT)/motion_mocap/%/manifest.json: $(CAPTURE) $(CHARACTER) $(IK_MODEL)
-	$(call IK_FROM,$(SUBJECT)/capture/sequences/$*/mocap.npz,$*,$(SUBJECT)/motion_mocap/$*)
+$(SUBJECT)/motion_mocap/%/manifest.json: $(CAPTURE) $(CHARACTER) $(IK_MODEL) $(CALIBRATION) $(HMD_REFERENCE)
+	$(call IK_FROM,$(SUBJECT)/capture/sequences/$*/mocap.npz,$*,$(SUBJECT)/motion_mocap/$*) $(call HMD_FROM,$*)
 
 # motion_surface/<seq>: the studio mocap's motion with each frame's root and body DoFs then fitted so that
 # the skinned character lies on the sequence's multi-view reconstruction (ik --fit-recon,
@@ -190,8 +203,8 @@ $(SUBJECT)/motion_surface/%/manifest.json: $(CAPTURE) $(CHARACTER) $(IK_MODEL)
 
 # motion_truth/<seq>: from the TRUE keypoints (evaluation only: the relight rows that isolate the
 # tracking error, see renders_truth below)
-$(SUBJECT)/motion_truth/%/manifest.json: $(CAPTURE) $(CHARACTER) $(IK_MODEL)
-	$(call IK_FROM,$(SUBJECT)/capture/groundtruth/$*/keypoints.npz,$*,$(SUBJECT)/motion_truth/$*)
+$(SUBJECT)/motion_truth/%/manifest.json: $(CAPTURE) $(CHARACTER) $(IK_MODEL) $(CALIBRATION) $(HMD_REFERENCE)
+	$(call IK_FROM,$(SUBJECT)/capture/groundtruth/$*/keypoints.npz,$*,$(SUBJECT)/motion_truth/$*) $(call HMD_FROM,$*)
 
 # ---------------------------------------------------------------- egodepth (Sec. egocentric depth estimator)
 # EGODEPTH_METHOD=sgbm gives the classical stereo baseline instead of the trained network.
@@ -262,6 +275,13 @@ egodepth-curve: $(foreach n,$(EGODEPTH_CURVE_FRAMES),$(SUBJECT)/curves/egodepth/
 # 0.573 -> 0.555 on the posed frames.
 # Issue 21's twenty-third session: motion_surface given twice (oversampled) reaches 0.638 under the
 # simulator's DoFs, but the estimated motion gets worse (2.61 vs 2.56).
+# Issue 21's twenty-eighth session, a fresh cpu capture: the network's loss to skinning under the simulator's
+# DoFs sat on the face and hair (+0.0066 / +0.0023 cm of the whole body's +0.016), regions no ego camera
+# sees, which the training motions put 4-5 cm off (IK leaves the neck and head at the mean pose). With the
+# head placed by the headset (HMD_FROM above) in the training and `test` motions, estimated 2.49 -> 2.38
+# (skinning 2.96 -> 2.64), IK of true keypoints 0.93 -> 0.82 (1.23 -> 1.01), simulator DoFs 0.647 -> 0.640
+# (0.631): still a tie, the face now +0.0059. Measured and rejected there: each motion also given as a
+# jittered copy (smooth noise, 0.03 rad / 1 cm per DoF): estimated 2.56, IK 0.90, DoFs 0.696.
 # ANIMATE_TRAIN_MOTIONS="motion" is the estimated motion alone; "motion_mocap" the mocap alone.
 # The depth-agnostic student is fine-tuned with xi = 0 on the flat-lit frames of ANIMATE_STUDENT_SEQ
 # (for the appearance stages) under ANIMATE_STUDENT_MOTIONS. Since issue 21's twenty-first session

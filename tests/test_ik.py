@@ -421,7 +421,7 @@ def test_cli_wild_truth_is_scored_in_the_frame_of_the_trackers_head_poses(run, t
     assert not (tmp_path / "unposed").exists()
     assert_one_line_error(run("ik", "--in", tmp_path / "keypoints", "--gt", folder / "keypoints.npz",
                               "--calibration", tmp_path / "calibration", "--out", tmp_path / "bad"),
-                          "--calibration needs --gt to be a capture/groundtruth/<seq> folder")
+                          "--calibration with --gt needs --gt to be a capture/groundtruth/<seq> folder")
 
 
 def test_cli_train_ik_then_use_the_model(run, sequence, tmp_path):

@@ -135,15 +135,19 @@ STAGE_COMMANDS = (
                     Input("--model", "model", "ik model (train ik); default: built from the character.", ("model",)),
                     Input("--gt", "gt", "Ground truth (keypoints or motion artifact/npz, or a capture/groundtruth/<seq> "
                           "folder).", ("keypoints", "motion"), (".npz", "folder")),
-                    calibration("With a capture/groundtruth/<seq> --gt: the calibration whose head poses placed the "
-                                "input keypoints; the truth is scored in their frame (a tracker's own world).",
+                    calibration("Head poses: with a capture/groundtruth/<seq> --gt, the truth is scored in their "
+                                "frame (a tracker's own world); with --hmd-reference, the head follows them.",
                                 required=False),
                     Input("--fit-recon", "fit_recon", "Capture: then fit each frame's root and body DoFs so that the "
                           "skinned character lies on its multi-view reconstruction of --seq (stages/ik_surface.py).",
-                          ("capture",))),
+                          ("capture",)),
+                    Input("--hmd-reference", "hmd_reference", "Motion (e.g. ik --fit-recon) of a sequence with head "
+                          "poses: calibrates the headset's mounting on the head; the neck and head DoFs of --seq's "
+                          "frames then follow --calibration's head poses (stages/ik_head.py).", ("motion",))),
             options=(Option("--solver", "solver", "lm (default, fast) or lbfgs (the paper's baseline).",
                             type=("lm", "lbfgs"), config_key="solver"),
-                     sequence(None, "With --fit-recon: the input's sequence, whose reconstructions are fitted."))),
+                     sequence(None, "The input's sequence: with --fit-recon its reconstructions are fitted, with "
+                              "--hmd-reference its head poses place the head."))),
     Command(("train", "egodepth"), "egodepth",
             "Fit the depth network to the ego_train sequences, supervised by the reconstructions.",
             "egorelight_cli.stages.egodepth_commands:train_command", model_out(),

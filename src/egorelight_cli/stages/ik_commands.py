@@ -38,6 +38,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
+from egorelight_cli import console
 from egorelight_cli.artifacts import MANIFEST_NAME, Artifact, ArtifactWriter, check_sequence
 from egorelight_cli.config import Config
 from egorelight_cli.errors import EgorelightError
@@ -135,21 +136,19 @@ def _check_truth_frame_given(keypoints: Artifact | None, gt_path: Path) -> None:
                               "frame", gt_path)
 
 
-def _gt_in_pose_frame(calibration_path: Path, gt_path: Path | None, character: Character,
+def _gt_in_pose_frame(calibration, calibration_path: Path, gt_path: Path, character: Character,
                       gt_keypoints: Keypoints | None, gt_motion: Motion | None):
-    """(keypoints, motion, manifest note, calibration artifact): the ground truth of a
-    ``capture/groundtruth/<seq>`` folder in the frame of the calibration's head poses of ``seq``
-    (keypoints only, FK of the motion if need be, where that frame is not the truth's)."""
+    """(keypoints, motion, manifest note): the ground truth of a ``capture/groundtruth/<seq>``
+    folder in the frame of the calibration's head poses of ``seq`` (keypoints only, FK of the
+    motion if need be, where that frame is not the truth's)."""
     import dataclasses
 
     from egorelight_cli.geometry.cameras import transform_points
-    from egorelight_cli.io.calibration import open_calibration
     from egorelight_cli.synth.groundtruth import T_pose_frame_from_truth_world, truth_frame_note
 
     if truth_folder_sequence(gt_path) is None or not (Path(gt_path) / "head_pose.npz").is_file():
-        raise EgorelightError("--calibration needs --gt to be a capture/groundtruth/<seq> folder with head_pose.npz",
-                              gt_path or calibration_path)
-    calibration, artifact = open_calibration(calibration_path)
+        raise EgorelightError("--calibration with --gt needs --gt to be a capture/groundtruth/<seq> folder with "
+                              "head_pose.npz", gt_path or calibration_path)
     gt_path = Path(gt_path)
     sequence, root = gt_path.name, gt_path.parent.parent
     T = T_pose_frame_from_truth_world(root, calibration, sequence)
@@ -160,7 +159,7 @@ def _gt_in_pose_frame(calibration_path: Path, gt_path: Path | None, character: C
             gt_keypoints = motion_keypoints(character, gt_motion)
         gt_keypoints = dataclasses.replace(gt_keypoints, xyz=transform_points(T, gt_keypoints.xyz))
         gt_motion = None
-    return gt_keypoints, gt_motion, truth_frame_note(calibration, sequence), artifact
+    return gt_keypoints, gt_motion, truth_frame_note(calibration, sequence)
 
 
 def load_gt(path: Path, character: Character) -> tuple[Keypoints | None, Motion | None, list[Artifact], list[Path]]:
@@ -270,14 +269,14 @@ class IKCommands:
 
     def ik(self, input_path: Path, character_spec: str, model_path: Path | None, gt_path: Path | None,
            calibration_path: Path | None, out: Path, fit_recon: Path | None = None,
-           sequence: str | None = None) -> Path:
+           sequence: str | None = None, hmd_reference: Path | None = None) -> Path:
         from egorelight_cli.stages.character_commands import load_character
         from egorelight_cli.stages.ik_surface import SurfaceFitSettings
 
         cfg = self.run.config()
         settings = IKSettings.from_config(cfg)  # a bad config value fails before anything is read
         surface_settings = SurfaceFitSettings.from_config(cfg)  # likewise ik --fit-recon's
-        recon = _recon_sequence(fit_recon, sequence)
+        recon = _recon_sequence(fit_recon, sequence, hmd_reference is not None)
         character, character_artifact = load_character(character_spec)
         source = load_ik_input(input_path, character, cfg)
         inputs = [a for a in (source.artifact, character_artifact) if a is not None]
@@ -297,14 +296,30 @@ class IKCommands:
             gt_keypoints, gt_motion, gt_artifacts, gt_sources = load_gt(gt_path, character)
             inputs += gt_artifacts
             sources += gt_sources
-        if calibration_path is None and gt_path is not None:
+        # the truth is taken into the frame of --calibration's head poses where it has some (a sequence
+        # where the headset was not worn is scored as it is, when --calibration is there for --hmd-reference)
+        posed_truth = calibration_path is not None and gt_path is not None and (
+            hmd_reference is None or (Path(gt_path) / "head_pose.npz").is_file())
+        if not posed_truth and gt_path is not None:
             _check_truth_frame_given(source.artifact, gt_path)
-        gt_frame = None
+        gt_frame = calibration = None
         if calibration_path is not None:
-            gt_keypoints, gt_motion, gt_frame, calibration_artifact = _gt_in_pose_frame(
-                calibration_path, gt_path, character, gt_keypoints, gt_motion)
+            from egorelight_cli.io.calibration import open_calibration
+
+            if gt_path is None and hmd_reference is None:
+                raise EgorelightError("--calibration needs --gt (a capture/groundtruth/<seq> folder) or --hmd-reference",
+                                      calibration_path)
+            calibration, calibration_artifact = open_calibration(calibration_path)
             inputs.append(calibration_artifact)
-            sources.append(Path(gt_path) / "head_pose.npz")  # the truth's frame is read from it
+            if posed_truth:
+                gt_keypoints, gt_motion, gt_frame = _gt_in_pose_frame(calibration, calibration_path, gt_path, character,
+                                                                      gt_keypoints, gt_motion)
+                sources.append(Path(gt_path) / "head_pose.npz")  # the truth's frame is read from it
+        hmd = None
+        if hmd_reference is not None:
+            hmd, reference_artifact = _hmd_mount(hmd_reference, calibration, calibration_path, sequence, character)
+            inputs.append(reference_artifact)
+            check_sequence(source.artifact, sequence)  # the head poses must be the input's
         if source.keypoints is not None:
             from egorelight_cli.stages.ik import check_keypoints_for
 
@@ -322,6 +337,8 @@ class IKCommands:
             keypoint_fit = result
             if recon is not None:
                 result = _fit_to_recon(writer, character, result, source.keypoints, recon[0], surface_settings)
+            if hmd is not None:
+                result = _head_from_hmd(writer, character, result, source.keypoints, hmd)
             save_motion(writer, result.motion(character.skeleton.dof_names), source=source.info.get("source"))
             writer.extra[CHARACTER_FINGERPRINT] = character.fingerprint()  # the DoFs pose this character
             writer.metrics.update(fit_metrics(result))
@@ -367,15 +384,15 @@ class IKCommands:
         return self.run.produce(out, "model", write, inputs=inputs, source_files=sources)
 
 
-def _recon_sequence(capture_path: Path | None, sequence: str | None):
+def _recon_sequence(capture_path: Path | None, sequence: str | None, hmd: bool = False):
     """``(SequenceInfo, capture artifact)`` of ``--fit-recon CAPTURE --seq S``, None without
     ``--fit-recon``; a one-line error when the two do not come together or the sequence has no
-    reconstruction."""
+    reconstruction (``hmd``: ``--hmd-reference`` was given, which also needs ``--seq``)."""
     from egorelight_cli.io.capture import open_capture
 
     if capture_path is None:
-        if sequence is not None:
-            raise EgorelightError("--seq names the sequence of --fit-recon; give --fit-recon CAPTURE too")
+        if sequence is not None and not hmd:
+            raise EgorelightError("--seq names the input's sequence for --fit-recon or --hmd-reference; give one of them")
         return None
     if sequence is None:
         raise EgorelightError("--fit-recon needs --seq: the sequence whose reconstructions the motion is fitted to")
@@ -402,6 +419,73 @@ def _fit_to_recon(writer: ArtifactWriter, character: Character, result: IKResult
     return with_theta(character, result, theta, None if keypoints is None else keypoints.xyz.astype(np.float64))
 
 
+@dataclass(frozen=True)
+class _HMDHead:
+    """What ``--hmd-reference`` gives the fit: the head chain, the mounting and the input's HMD poses
+    (None: the sequence has none)."""
+
+    chain: object
+    T_hmd_from_head: np.ndarray
+    mount: dict
+    head_poses: object
+
+
+def _hmd_mount(reference_path: Path, calibration, calibration_path: Path | None, sequence: str | None,
+               character: Character) -> tuple[_HMDHead, Artifact]:
+    """The HMD's mounting on the head, calibrated on the ``--hmd-reference`` motion's frames with a
+    valid head pose in its own sequence (:func:`~egorelight_cli.stages.ik_head.calibrate_hmd_from_head`),
+    and the head poses of ``sequence`` (the input's)."""
+    from egorelight_cli.stages.ik_head import calibrate_hmd_from_head, head_chain, head_transforms
+
+    if calibration is None or sequence is None:
+        raise EgorelightError("--hmd-reference needs --calibration (the head poses) and --seq (the input's sequence)",
+                              reference_path)
+    reference, artifact = load_motion(reference_path)
+    if artifact is None:
+        raise EgorelightError("--hmd-reference must be a motion artifact (its manifest names its sequence)",
+                              reference_path)
+    reference.check_dofs(character.skeleton.dof_names, reference_path)
+    check_same_character(artifact, character, "--hmd-reference motion")
+    reference_sequence = ((artifact.manifest.get("config") or {}).get("options") or {}).get("sequence")
+    if reference_sequence not in calibration.head_poses:
+        raise EgorelightError(f"the calibration has no head poses of sequence {reference_sequence!r} (the "
+                              "--hmd-reference motion's)", calibration_path)
+    if sequence not in calibration.head_poses:  # the headset was not worn (relight_train): the head stays
+        console.info(f"ik: the calibration has no head poses of sequence {sequence!r}: the head is not placed "
+                     "by the headset")
+    poses = calibration.head_poses[reference_sequence]
+    by_frame = {int(f): T for f, T, ok in zip(poses.frame_ids, poses.T_world_from_hmd, poses.valid) if ok}
+    rows = [r for r, f in enumerate(reference.frame_ids) if int(f) in by_frame]
+    if not rows:
+        raise EgorelightError(f"no frame of the motion has a valid head pose of sequence {reference_sequence!r}",
+                              reference_path)
+    chain = head_chain(character)
+    T_hmd_from_head, mount = calibrate_hmd_from_head(
+        np.stack([by_frame[int(reference.frame_ids[r])] for r in rows]),
+        head_transforms(character, reference.theta[rows], chain.joint))
+    mount["hmd_mount_sequence"] = str(reference_sequence)
+    return _HMDHead(chain, T_hmd_from_head, mount, calibration.head_poses.get(sequence)), artifact
+
+
+def _head_from_hmd(writer: ArtifactWriter, character: Character, result: IKResult, keypoints: Keypoints | None,
+                   hmd: _HMDHead) -> IKResult:
+    """``result`` with the neck and head DoFs of each frame with a valid HMD pose fitted to it
+    (:func:`~egorelight_cli.stages.ik_head.fit_head_to_hmd`)."""
+    from egorelight_cli.stages.ik_head import fit_head_to_hmd
+    from egorelight_cli.stages.ik_surface import with_theta
+
+    poses = hmd.head_poses
+    by_frame = {} if poses is None else {int(f): T for f, T, ok in zip(poses.frame_ids, poses.T_world_from_hmd,
+                                                                        poses.valid) if ok}
+    targets = {r: by_frame[int(f)] @ hmd.T_hmd_from_head for r, f in enumerate(result.frame_ids) if int(f) in by_frame}
+    theta, summary = fit_head_to_hmd(character, result.theta, targets, hmd.chain)
+    writer.metrics.update({**hmd.mount, **summary})
+    writer.units.update({"hmd_mount_spread_cm": "cm, mean distance of the reference frames' HMD-to-head transforms "
+                                                "from their mean", "hmd_head_offset_cm_before": "cm, head joint off "
+                                                "the HMD's before the neck/head fit (after: the fit's residual)"})
+    return with_theta(character, result, theta, None if keypoints is None else keypoints.xyz.astype(np.float64))
+
+
 def _write_preview(writer: ArtifactWriter, character: Character, result: IKResult, keypoints: Keypoints | None,
                    cfg: Config) -> None:
     from egorelight_cli.io.images import write_image
@@ -421,5 +505,6 @@ def train_command(run: StageRun, motions: tuple[Path, ...], character: str, out:
 
 
 def ik_command(run: StageRun, input: Path, character: str, model: Path | None, gt: Path | None,
-               calibration: Path | None, fit_recon: Path | None, sequence: str | None, out: Path) -> Path:
-    return IKCommands(run).ik(input, character, model, gt, calibration, out, fit_recon, sequence)
+               calibration: Path | None, fit_recon: Path | None, hmd_reference: Path | None, sequence: str | None,
+               out: Path) -> Path:
+    return IKCommands(run).ik(input, character, model, gt, calibration, out, fit_recon, sequence, hmd_reference)

@@ -98,6 +98,12 @@ def gt_metrics(character: Character, result: IKResult, gt_keypoints: Keypoints |
         deg = lambda mask: float(np.degrees(joint_angle[:, mask].mean())) if mask.any() else None  # noqa: E731
         metrics.update({"gt_dof_error_deg": deg(solved & revolute), "gt_dof_error_body_deg": deg(solved & revolute & ~hand),
                         "gt_dof_error_hands_deg": deg(solved & revolute & hand)})
+        if len(groups.unobservable):  # the neck and head: at the mean pose, or placed by the headset (ik_head.py)
+            from egorelight_cli.stages.ik_head import head_chain
+
+            neck_head = np.zeros(sk.num_dofs, bool)
+            neck_head[head_chain(character).dofs] = True
+            metrics["gt_dof_error_neck_head_deg"] = deg(neck_head & revolute)
         trans = groups.root[~revolute[groups.root]]
         if len(trans):
             metrics["gt_root_translation_error_cm"] = float(100 * np.linalg.norm(diff[:, trans], axis=1).mean())
