@@ -56,6 +56,8 @@ from egorelight_cli.structures.character import Character
 
 if TYPE_CHECKING:
     from egorelight_cli.stages.ik_surface import SurfaceFitSettings
+    from egorelight_cli.stages.ik_head import HeadChain
+    from egorelight_cli.structures.calibration import HeadPoses
 
 PREVIEW_PNG = "preview.png"
 
@@ -424,10 +426,10 @@ class _HMDHead:
     """What ``--hmd-reference`` gives the fit: the head chain, the mounting and the input's HMD poses
     (None: the sequence has none)."""
 
-    chain: object
+    chain: "HeadChain"
     T_hmd_from_head: np.ndarray
     mount: dict
-    head_poses: object
+    head_poses: "HeadPoses | None"
 
 
 def _hmd_mount(reference_path: Path, calibration, calibration_path: Path | None, sequence: str | None,
