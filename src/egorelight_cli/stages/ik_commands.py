@@ -455,18 +455,21 @@ def _hmd_mount(reference_path: Path, calibration, calibration_path: Path | None,
     if sequence not in calibration.head_poses:  # the headset was not worn (relight_train): the head stays
         console.info(f"ik: the calibration has no head poses of sequence {sequence!r}: the head is not placed "
                      "by the headset")
-    poses = calibration.head_poses[reference_sequence]
-    by_frame = {int(f): T for f, T, ok in zip(poses.frame_ids, poses.T_world_from_hmd, poses.valid) if ok}
-    rows = [r for r, f in enumerate(reference.frame_ids) if int(f) in by_frame]
-    if not rows:
+    posed = _valid_hmd_poses(calibration.head_poses[reference_sequence], reference.frame_ids)
+    if not posed:
         raise EgorelightError(f"no frame of the motion has a valid head pose of sequence {reference_sequence!r}",
                               reference_path)
     chain = head_chain(character)
     T_hmd_from_head, mount = calibrate_hmd_from_head(
-        np.stack([by_frame[int(reference.frame_ids[r])] for r in rows]),
-        head_transforms(character, reference.theta[rows], chain.joint))
+        np.stack(list(posed.values())), head_transforms(character, reference.theta[list(posed)], chain.joint))
     mount["hmd_mount_sequence"] = str(reference_sequence)
     return _HMDHead(chain, T_hmd_from_head, mount, calibration.head_poses.get(sequence)), artifact
+
+
+def _valid_hmd_poses(poses: "HeadPoses", frame_ids: np.ndarray) -> dict[int, np.ndarray]:
+    """Row of ``frame_ids`` -> ``T_world_from_hmd`` (4,4), for the frames with a valid head pose."""
+    found = {row: poses.valid_pose(int(f)) for row, f in enumerate(frame_ids)}
+    return {row: T for row, T in found.items() if T is not None}
 
 
 def _head_from_hmd(writer: ArtifactWriter, character: Character, result: IKResult, keypoints: Keypoints | None,
@@ -476,10 +479,8 @@ def _head_from_hmd(writer: ArtifactWriter, character: Character, result: IKResul
     from egorelight_cli.stages.ik_head import fit_head_to_hmd
     from egorelight_cli.stages.ik_surface import with_theta
 
-    poses = hmd.head_poses
-    by_frame = {} if poses is None else {int(f): T for f, T, ok in zip(poses.frame_ids, poses.T_world_from_hmd,
-                                                                        poses.valid) if ok}
-    targets = {r: by_frame[int(f)] @ hmd.T_hmd_from_head for r, f in enumerate(result.frame_ids) if int(f) in by_frame}
+    posed = {} if hmd.head_poses is None else _valid_hmd_poses(hmd.head_poses, result.frame_ids)
+    targets = {row: T_world_from_hmd @ hmd.T_hmd_from_head for row, T_world_from_hmd in posed.items()}
     theta, summary = fit_head_to_hmd(character, result.theta, targets, hmd.chain)
     writer.metrics.update({**hmd.mount, **summary})
     writer.units.update({"hmd_mount_spread_cm": "cm, mean distance of the reference frames' HMD-to-head transforms "
