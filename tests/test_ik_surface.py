@@ -49,12 +49,40 @@ def test_dofs_return_to_a_surface_posed_by_known_dofs(character):
     assert np.all(theta[:2, free] >= low) and np.all(theta[:2, free] <= high)
 
 
-def test_the_fit_moves_root_and_body_only(character):
+def test_the_head_returns_to_a_surface_its_dofs_posed(character):
+    """A head turned 0.25 rad on each neck/head DoF of the chain in the target surface, left at
+    the pose's value in the start: the fit turns it back most of the way; ``head: false`` leaves it."""
+    from egorelight_cli.stages.ik_head import head_chain
+
+    chain = head_chain(character).dofs
+    rng = np.random.default_rng(5)
+    start = np.zeros((2, character.skeleton.num_dofs))
+    truth = start.copy()
+    truth[:, chain] = np.clip(0.25, *character.skeleton.dof_limits[chain].T)
+    vertices = pose_character(character, torch.as_tensor(truth)).numpy()
+    targets = {f: surface_target(vertices[f], character.faces, 3000, rng) for f in (0, 1)}
+    settings = replace(SurfaceFitSettings(), steps=150, lr=0.01, target_points=3000)
+
+    theta, _ = fit_motion_to_surface(character, start, np.arange(2), targets, settings)
+    kept, _ = fit_motion_to_surface(character, start, np.arange(2), targets, replace(settings, head=False))
+
+    before = np.abs(start[:, chain] - truth[:, chain]).mean()
+    assert np.abs(theta[:, chain] - truth[:, chain]).mean() < 0.35 * before
+    np.testing.assert_array_equal(kept[:, chain], start[:, chain])
+
+
+def test_the_fit_moves_root_body_and_head_only(character):
+    """Root, body and the head chain's neck/head DoFs (the reconstruction sees the face); with
+    ``head=False`` root and body alone; never the fingers or the unobservable DoFs off the chain."""
+    from egorelight_cli.stages.ik_head import head_chain
     from egorelight_cli.stages.ik_model import classify_dofs
 
     groups = classify_dofs(character)
+    chain = head_chain(character).dofs
     free = surface_fit_dofs(character)
-    assert free[groups.root].all() and free[groups.body].all()
+    assert free[groups.root].all() and free[groups.body].all() and free[chain].all()
+    assert np.array_equal(np.flatnonzero(free[groups.unobservable]), np.flatnonzero(np.isin(groups.unobservable, chain)))
+    assert not surface_fit_dofs(character, head=False)[groups.unobservable].any()
     for hand in groups.hands.values():
         assert not free[hand].any()
 

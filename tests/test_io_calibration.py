@@ -40,6 +40,15 @@ def test_round_trip_and_unprojection_transform(tmp_path):
     np.testing.assert_allclose(T[:3, 3], (calib.head_poses["test"].T_world_from_hmd[2] @ np.r_[centre_hmd, 1])[:3])
 
 
+def test_valid_poses_are_the_unflagged_frames():
+    poses = make_calibration().head_poses["test"]
+    valid = poses.valid_poses()
+    assert sorted(valid) == [10, 12]
+    for frame, T in valid.items():
+        np.testing.assert_array_equal(T, poses.valid_pose(frame))
+    assert poses.valid_pose(11) is None
+
+
 def test_flagged_and_unknown_frames_are_errors(tmp_path):
     write_calibration(tmp_path, make_calibration())
     back = read_calibration(tmp_path)

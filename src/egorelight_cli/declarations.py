@@ -138,12 +138,14 @@ STAGE_COMMANDS = (
                     calibration("Head poses: with a capture/groundtruth/<seq> --gt, the truth is scored in their "
                                 "frame (a tracker's own world); with --hmd-reference, the head follows them.",
                                 required=False),
-                    Input("--fit-recon", "fit_recon", "Capture: then fit each frame's root and body DoFs so that the "
-                          "skinned character lies on its multi-view reconstruction of --seq (stages/ik_surface.py).",
+                    Input("--fit-recon", "fit_recon", "Capture: then fit each frame's root, body, neck and head DoFs "
+                          "so that the skinned character lies on its multi-view reconstruction of --seq "
+                          "(stages/ik_surface.py).",
                           ("capture",)),
                     Input("--hmd-reference", "hmd_reference", "Motion (e.g. ik --fit-recon) of a sequence with head "
-                          "poses: calibrates the headset's mounting on the head; the neck and head DoFs of --seq's "
-                          "frames then follow --calibration's head poses (stages/ik_head.py).", ("motion",))),
+                          "poses: calibrates the headset's mounting on the head; --seq's frames are then fitted to "
+                          "--calibration's head poses too, as three markers on the head (stages/ik_head.py).",
+                          ("motion",))),
             options=(Option("--solver", "solver", "lm (default, fast) or lbfgs (the paper's baseline).",
                             type=("lm", "lbfgs"), config_key="solver"),
                      sequence(None, "The input's sequence: with --fit-recon its reconstructions are fitted, with "

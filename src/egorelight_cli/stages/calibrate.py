@@ -93,7 +93,7 @@ def calibrate(capture: Capture, cfg: Config) -> CalibrationRun:
             poses = tracks[name].poses
             console.info(f"calibrate: {name}: head poses for {int(poses.valid.sum())}/{len(poses.valid)} frames")
     track = tracks[handeye_name]
-    heads = {int(f): T for f, T, ok in zip(track.poses.frame_ids, track.poses.T_world_from_hmd, track.poses.valid) if ok}
+    heads = track.poses.valid_poses()
     handeye = calibrate_hand_eye(capture, handeye_seq, syncs[handeye_name].stream_offset, heads, track.observations,
                                  cfg.handeye)
     for role, why in handeye.missing.items():
@@ -254,9 +254,7 @@ def board_preview(capture: Capture, run: CalibrationRun, cfg) -> np.ndarray:
     """Ego images of the hand-eye sequence: detected board corners (green), reprojected (red)."""
     he = run.handeye
     seq = capture.sequence(str(cfg.handeye_sequence))
-    heads = {int(f): T for f, T, ok in zip(run.tracks[seq.name].poses.frame_ids,
-                                           run.tracks[seq.name].poses.T_world_from_hmd,
-                                           run.tracks[seq.name].poses.valid) if ok}
+    heads = run.tracks[seq.name].poses.valid_poses()
     rows = []
     frames = sorted({o.frame for o in he.observations if o.frame in heads})
     picks = [frames[i] for i in np.linspace(0, len(frames) - 1, min(int(cfg.preview.frames), len(frames))).astype(int)] \

@@ -204,9 +204,10 @@ def check_keypoints_for(character: Character, keypoints: Keypoints, settings: IK
 
 
 def solve_ik(character: Character, keypoints: Keypoints, model: IKModel | None = None,
-             settings: IKSettings = IKSettings()) -> IKResult:
+             settings: IKSettings = IKSettings(), keypoint_weights: np.ndarray | None = None) -> IKResult:
     """Solve the motion of ``character`` that best explains ``keypoints`` (see the module
-    docstring). ``model`` defaults to :func:`default_ik_model`.
+    docstring). ``model`` defaults to :func:`default_ik_model`; ``keypoint_weights`` (K,) >= 0
+    multiply each keypoint's confidence in the data term (default: all 1).
 
     Gross outliers (:mod:`egorelight_cli.stages.ik_robust`) are dropped: keypoints far from their
     frame's body before the fit, then keypoints far off a first fit (the motion is fitted again
@@ -217,6 +218,8 @@ def solve_ik(character: Character, keypoints: Keypoints, model: IKModel | None =
     model = (model or default_ik_model(character, settings)).check_character(character)
     xyz = keypoints.xyz.astype(np.float64)
     conf = _data_weights(keypoints, settings)
+    if keypoint_weights is not None:
+        conf = conf * np.asarray(keypoint_weights, np.float64)[None, :]
     rejected = distant_keypoints(xyz, conf > 0, settings.outlier_distance_m)
     conf[rejected] = 0.0
     runs = frame_runs(keypoints.frame_ids)

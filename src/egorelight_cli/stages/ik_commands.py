@@ -21,6 +21,11 @@ only keypoint errors are scored (DoF errors need one world).
 character lies on the capture's multi-view reconstruction of that frame
 (:mod:`egorelight_cli.stages.ik_surface`; ``train animate``'s third motion source in the demo).
 
+``--hmd-reference MOTION --calibration CAL --seq S`` places the head by the tracked headset: its
+mounting on the head is calibrated on MOTION's frames, and the keypoints are solved again with the
+headset's pose as three weighted markers on the head joint (:mod:`egorelight_cli.stages.ik_head`),
+before any ``--fit-recon``.
+
 The motion artifact holds ``motion.npz`` (see :mod:`egorelight_cli.io.motion`) and, for a
 directory output, ``preview.png`` (fitted skeleton over the target keypoints for a few frames).
 The ik model artifact (``train ik``) is a model directory in the shared layout of
@@ -273,11 +278,13 @@ class IKCommands:
            calibration_path: Path | None, out: Path, fit_recon: Path | None = None,
            sequence: str | None = None, hmd_reference: Path | None = None) -> Path:
         from egorelight_cli.stages.character_commands import load_character
+        from egorelight_cli.stages.ik_head import HMDSettings
         from egorelight_cli.stages.ik_surface import SurfaceFitSettings
 
         cfg = self.run.config()
         settings = IKSettings.from_config(cfg)  # a bad config value fails before anything is read
         surface_settings = SurfaceFitSettings.from_config(cfg)  # likewise ik --fit-recon's
+        HMDSettings.from_config(cfg)  # and --hmd-reference's
         recon = _recon_sequence(fit_recon, sequence, hmd_reference is not None)
         character, character_artifact = load_character(character_spec)
         source = load_ik_input(input_path, character, cfg)
@@ -329,6 +336,7 @@ class IKCommands:
 
         def write(writer: ArtifactWriter, cfg: Config) -> None:
             settings = IKSettings.from_config(cfg)
+            used = None
             if source.keypoints is not None:
                 used = model or default_ik_model(character, settings)
                 result = solve_ik(character, source.keypoints, used, settings)
@@ -337,10 +345,10 @@ class IKCommands:
             else:
                 result = passthrough_result(character, source.theta, source.frame_ids, settings.fps)
             keypoint_fit = result
+            if hmd is not None:
+                result = _head_from_hmd(writer, character, result, source.keypoints, hmd, used, cfg)
             if recon is not None:
                 result = _fit_to_recon(writer, character, result, source.keypoints, recon[0], surface_settings)
-            if hmd is not None:
-                result = _head_from_hmd(writer, character, result, source.keypoints, hmd)
             save_motion(writer, result.motion(character.skeleton.dof_names), source=source.info.get("source"))
             writer.extra[CHARACTER_FINGERPRINT] = character.fingerprint()  # the DoFs pose this character
             writer.metrics.update(fit_metrics(result))
@@ -468,25 +476,44 @@ def _hmd_mount(reference_path: Path, calibration, calibration_path: Path | None,
 
 def _valid_hmd_poses(poses: "HeadPoses", frame_ids: np.ndarray) -> dict[int, np.ndarray]:
     """Row of ``frame_ids`` -> ``T_world_from_hmd`` (4,4), for the frames with a valid head pose."""
-    found = {row: poses.valid_pose(int(f)) for row, f in enumerate(frame_ids)}
-    return {row: T for row, T in found.items() if T is not None}
+    valid = poses.valid_poses()
+    return {row: valid[int(f)] for row, f in enumerate(frame_ids) if int(f) in valid}
 
 
 def _head_from_hmd(writer: ArtifactWriter, character: Character, result: IKResult, keypoints: Keypoints | None,
-                   hmd: _HMDHead) -> IKResult:
-    """``result`` with the neck and head DoFs of each frame with a valid HMD pose fitted to it
-    (:func:`~egorelight_cli.stages.ik_head.fit_head_to_hmd`)."""
-    from egorelight_cli.stages.ik_head import fit_head_to_hmd
+                   hmd: _HMDHead, model: IKModel | None, cfg: Config) -> IKResult:
+    """The motion with its head placed by the HMD in each frame with a valid HMD pose: the keypoints
+    solved again with the HMD's head markers (:func:`~egorelight_cli.stages.ik_head.with_head_markers`),
+    or, for an input given as DoFs (``result`` without keypoints), the neck and head DoFs fitted to
+    it (:func:`~egorelight_cli.stages.ik_head.fit_head_to_hmd`). ``result`` is the keypoint fit."""
+    from dataclasses import replace
+
+    from egorelight_cli.stages.ik_head import (HMDSettings, fit_head_to_hmd, head_marker_keypoints,
+                                               head_offset_summary, with_head_markers)
     from egorelight_cli.stages.ik_surface import with_theta
 
     posed = {} if hmd.head_poses is None else _valid_hmd_poses(hmd.head_poses, result.frame_ids)
     targets = {row: T_world_from_hmd @ hmd.T_hmd_from_head for row, T_world_from_hmd in posed.items()}
-    theta, summary = fit_head_to_hmd(character, result.theta, targets, hmd.chain)
+    if keypoints is None:
+        theta, summary = fit_head_to_hmd(character, result.theta, targets, hmd.chain)
+        out = with_theta(character, result, theta, None)
+    else:
+        settings, marker = IKSettings.from_config(cfg), HMDSettings.from_config(cfg)
+        marked = with_head_markers(character, hmd.chain.joint, marker.marker_spacing_m)
+        weights = np.concatenate([np.ones(len(character.keypoint_names)), np.full(3, marker.weight)])
+        solved = solve_ik(marked, head_marker_keypoints(keypoints, targets, marker.marker_spacing_m), model, settings,
+                          weights) if targets else result
+        K = len(character.keypoint_names)
+        solved = replace(solved, residual_m=solved.residual_m[:, :K],
+                         rejected=None if solved.rejected is None else solved.rejected[:, :K])
+        out = with_theta(character, solved, solved.theta, keypoints.xyz.astype(np.float64))
+        summary = head_offset_summary(character, result.theta, out.theta, targets, hmd.chain.joint)
+        summary["hmd_marker_weight"] = marker.weight
     writer.metrics.update({**hmd.mount, **summary})
     writer.units.update({"hmd_mount_spread_cm": "cm, mean distance of the reference frames' HMD-to-head transforms "
                                                 "from their mean", "hmd_head_offset_cm_before": "cm, head joint off "
-                                                "the HMD's before the neck/head fit (after: the fit's residual)"})
-    return with_theta(character, result, theta, None if keypoints is None else keypoints.xyz.astype(np.float64))
+                                                "the HMD's in the keypoint fit (after: with the headset)"})
+    return out
 
 
 def _write_preview(writer: ArtifactWriter, character: Character, result: IKResult, keypoints: Keypoints | None,

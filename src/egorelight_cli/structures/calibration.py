@@ -51,6 +51,10 @@ class HeadPoses:
         index = self._index(frame_id)
         return None if index is None or not self.valid[index] else self.T_world_from_hmd[index]
 
+    def valid_poses(self) -> dict[int, np.ndarray]:
+        """Frame id -> T_world_from_hmd (4,4) of every frame not flagged."""
+        return {int(f): T for f, T, ok in zip(self.frame_ids, self.T_world_from_hmd, self.valid) if ok}
+
     def pose(self, frame_id: int) -> np.ndarray:
         """T_world_from_hmd of one frame; an error for unknown or flagged frames."""
         index = self._index(frame_id)
