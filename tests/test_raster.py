@@ -180,6 +180,27 @@ def test_uv_raster_marks_reassigned_texels_and_can_stay_faithful_to_uv():
     assert moved.any() and np.isin(conservative.face_id[moved], tiny).all()
 
 
+def test_settling_faces_without_texels_reaches_its_fixed_point_in_one_pass():
+    """Where faces outnumber texels most faces find none: after the one pass, a second changes
+    nothing, and no face left without a texel has an available one within its search radius."""
+    from egorelight_cli.render.raster import _free_texel_near, _settle_faces_without_texels, uv_to_texel_coords
+
+    _, faces, face_uvs, _ = _mesh_with_tiny_uv_faces()
+    resolution = (12, 14)
+    raster = rasterize_uv(face_uvs, resolution)
+    tri = uv_to_texel_coords(face_uvs, resolution)
+    has_area = np.abs(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])) > 0
+    counts = np.bincount(raster.face_id[raster.coverage], minlength=len(faces))
+    left = np.flatnonzero(has_area & (counts == 0))
+    assert len(faces) > 12 * 14 and left.size > 0 and (counts[has_area] > 0).any()
+    face_id, barycentrics = raster.face_id.copy(), raster.barycentrics.copy()
+    _settle_faces_without_texels(tri, has_area, tri.mean(axis=1), face_id, barycentrics, counts.copy())
+    np.testing.assert_array_equal(face_id, raster.face_id)
+    np.testing.assert_array_equal(barycentrics, raster.barycentrics)
+    for face in left:
+        assert _free_texel_near(tri[face].mean(axis=0), *resolution, raster.face_id, counts) is None
+
+
 def test_uv_raster_convention_row_zero_is_v_one():
     face_uvs = np.array([[[0.0, 1.0], [0.5, 1.0], [0.0, 0.5]]])  # top-left corner triangle
     raster = rasterize_uv(face_uvs, 8)

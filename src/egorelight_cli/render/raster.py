@@ -372,16 +372,21 @@ def _cover_small_faces(tri: np.ndarray, has_area: np.ndarray, face_id, barycentr
         centres = np.stack([cols[take], rows[take]], axis=-1).astype(np.float64)
         barycentrics[rows[take], cols[take]] = _closest_barycentrics(centres, tri[needy[take]])
 
-    for _ in range(4):
-        needy = np.flatnonzero(has_area & (counts == 0))
-        if not needy.size:
-            return
-        for face in needy:
-            if counts[face] > 0:
-                continue
-            spot = _free_texel_near(centroids[face], height, width, face_id, counts)
-            if spot is None:
-                continue
+    _settle_faces_without_texels(tri, has_area, centroids, face_id, barycentrics, counts)
+
+
+def _settle_faces_without_texels(tri: np.ndarray, has_area: np.ndarray, centroids: np.ndarray, face_id,
+                                 barycentrics, counts) -> None:
+    """One pass over the faces with UV area and no texel, each taking the nearest available texel
+    (:func:`_free_texel_near`). A second pass would change nothing: an assignment never makes a
+    texel available (the texel's new face holds it alone; its old face keeps one texel fewer) and
+    never leaves a face without one, so a face that finds no texel within its search radius finds
+    none later either. Where UV faces outnumber texels (a small resolution), most searches fail,
+    and repeating them was most of a layout's build time."""
+    height, width = face_id.shape
+    for face in np.flatnonzero(has_area & (counts == 0)):
+        spot = _free_texel_near(centroids[face], height, width, face_id, counts)
+        if spot is not None:
             _assign_texel(face, spot[0], spot[1], tri, face_id, barycentrics, counts)
 
 
