@@ -505,7 +505,8 @@ def _head_from_hmd(writer: ArtifactWriter, character: Character, result: IKResul
                           weights) if targets else result
         K = len(character.keypoint_names)
         solved = replace(solved, residual_m=solved.residual_m[:, :K],
-                         rejected=None if solved.rejected is None else solved.rejected[:, :K])
+                         rejected=None if solved.rejected is None else solved.rejected[:, :K],
+                         seconds=solved.seconds + (result.seconds if solved is not result else 0.0))  # both solves
         out = with_theta(character, solved, solved.theta, keypoints.xyz.astype(np.float64))
         summary = head_offset_summary(character, result.theta, out.theta, targets, hmd.chain.joint)
         summary["hmd_marker_weight"] = marker.weight
