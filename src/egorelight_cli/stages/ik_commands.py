@@ -60,8 +60,8 @@ from egorelight_cli.stages.ik import (IK_MODEL_TYPE, IKModel, IKResult, IKSettin
 from egorelight_cli.structures.character import Character
 
 if TYPE_CHECKING:
+    from egorelight_cli.stages.ik_head import HeadChain, HMDSettings
     from egorelight_cli.stages.ik_surface import SurfaceFitSettings
-    from egorelight_cli.stages.ik_head import HeadChain
     from egorelight_cli.structures.calibration import HeadPoses
 
 PREVIEW_PNG = "preview.png"
@@ -346,7 +346,8 @@ class IKCommands:
                 result = passthrough_result(character, source.theta, source.frame_ids, settings.fps)
             keypoint_fit = result
             if hmd is not None:
-                result = _head_from_hmd(writer, character, result, source.keypoints, hmd, used, cfg)
+                result = _head_from_hmd(writer, character, result, source.keypoints, hmd, used, settings,
+                                        HMDSettings.from_config(cfg))
             if recon is not None:
                 result = _fit_to_recon(writer, character, result, source.keypoints, recon[0], surface_settings)
             save_motion(writer, result.motion(character.skeleton.dof_names), source=source.info.get("source"))
@@ -481,15 +482,15 @@ def _valid_hmd_poses(poses: "HeadPoses", frame_ids: np.ndarray) -> dict[int, np.
 
 
 def _head_from_hmd(writer: ArtifactWriter, character: Character, result: IKResult, keypoints: Keypoints | None,
-                   hmd: _HMDHead, model: IKModel | None, cfg: Config) -> IKResult:
+                   hmd: _HMDHead, model: IKModel | None, settings: IKSettings, marker: HMDSettings) -> IKResult:
     """The motion with its head placed by the HMD in each frame with a valid HMD pose: the keypoints
     solved again with the HMD's head markers (:func:`~egorelight_cli.stages.ik_head.with_head_markers`),
     or, for an input given as DoFs (``result`` without keypoints), the neck and head DoFs fitted to
     it (:func:`~egorelight_cli.stages.ik_head.fit_head_to_hmd`). ``result`` is the keypoint fit."""
     from dataclasses import replace
 
-    from egorelight_cli.stages.ik_head import (HMDSettings, fit_head_to_hmd, head_marker_keypoints,
-                                               head_offset_summary, with_head_markers)
+    from egorelight_cli.stages.ik_head import (fit_head_to_hmd, head_marker_keypoints, head_offset_summary,
+                                               with_head_markers)
     from egorelight_cli.stages.ik_surface import with_theta
 
     posed = {} if hmd.head_poses is None else _valid_hmd_poses(hmd.head_poses, result.frame_ids)
@@ -498,7 +499,6 @@ def _head_from_hmd(writer: ArtifactWriter, character: Character, result: IKResul
         theta, summary = fit_head_to_hmd(character, result.theta, targets, hmd.chain)
         out = with_theta(character, result, theta, None)
     else:
-        settings, marker = IKSettings.from_config(cfg), HMDSettings.from_config(cfg)
         marked = with_head_markers(character, hmd.chain.joint, marker.marker_spacing_m)
         weights = np.concatenate([np.ones(len(character.keypoint_names)), np.full(3, marker.weight)])
         solved = solve_ik(marked, head_marker_keypoints(keypoints, targets, marker.marker_spacing_m), model, settings,

@@ -37,6 +37,7 @@ import torch
 
 from egorelight_cli.config import check_settings, setting, settings_from_config
 from egorelight_cli.errors import EgorelightError
+from egorelight_cli.geometry.ik_jacobian import ancestor_matrix
 from egorelight_cli.geometry.skeleton import forward_kinematics
 from egorelight_cli.structures.character import Character
 from egorelight_cli.structures.keypoints import Keypoints
@@ -80,7 +81,7 @@ def head_chain(character: Character) -> HeadChain:
         raise EgorelightError("the character has no neck or head DoF that keypoints leave free: nothing for "
                               "the headset to place")
     moved = (np.abs(skeleton.dof_joint_weights[hidden]) > 0).any(axis=0)  # (J,) joints they drive
-    ancestors = _ancestor_mask(skeleton.parents)
+    ancestors = ancestor_matrix(skeleton.parents)
     driven = ancestors[:, moved].any(axis=1)  # joints below one of them (or the joint itself)
     weight = np.zeros(len(skeleton.joint_names))
     np.add.at(weight, character.skin_bone_joints, character.skin_weights.sum(axis=0))
@@ -89,16 +90,6 @@ def head_chain(character: Character) -> HeadChain:
     on_chain = ancestors[joint]
     dofs = np.array([d for d in hidden if (np.abs(skeleton.dof_joint_weights[d]) > 0)[on_chain].any()], np.int64)
     return HeadChain(joint, dofs)
-
-
-def _ancestor_mask(parents: np.ndarray) -> np.ndarray:
-    """(J,J) bool: ``[j, a]`` is True where ``a`` is ``j`` or one of its ancestors."""
-    J = len(parents)
-    out = np.eye(J, dtype=bool)
-    for j in range(J):  # parents come before children
-        if parents[j] >= 0:
-            out[j] |= out[parents[j]]
-    return out
 
 
 def head_transforms(character: Character, theta: np.ndarray, joint: int) -> np.ndarray:
